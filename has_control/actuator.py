@@ -1,0 +1,88 @@
+"""Actuator physics (SPEC §2): the 4-state model and its RK4 step.
+
+State x = (y [m], ẏ [m/s], P1 [Pa], P2 [Pa]); valve command u is the spool
+displacement [m]. Functions take the flat parameter array of
+:meth:`has_control.params.Actuator.as_array` and return tuples, so the hot
+loop allocates nothing. They are the only implementation of the plant: the
+episode kernel, the plant node and the tests all call them.
+"""
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from .params import (
+    AREA_CAP, AREA_ROD, BULK, DAMPING, GRAVITY, LEAKAGE, MASS, P_RETURN, P_SUPPLY,
+    V_CAP0, V_ROD0, VALVE_GAIN,
+)
+
+_JIT = dict(cache=True, error_model="numpy", nogil=True)
+
+
+@njit(**_JIT)
+def valve_flows(p1, p2, u, ap):
+    """Servo-valve flows (q1 into the cap chamber, q2 out of the rod chamber) [m³/s].
+
+    q1 = G·u·[s(u)√(Ps − P1) + s(−u)√(P1 − Pr)],
+    q2 = G·u·[s(u)√(P2 − Pr) + s(−u)√(Ps − P2)], roots floored at 0.
+    """
+    ps = ap[P_SUPPLY]
+    pr = ap[P_RETURN]
+    if u >= 0.0:
+        d1 = ps - p1
+        d2 = p2 - pr
+    else:
+        d1 = p1 - pr
+        d2 = ps - p2
+    gu = ap[VALVE_GAIN] * u
+    return gu * math.sqrt(max(d1, 0.0)), gu * math.sqrt(max(d2, 0.0))
+
+
+@njit(**_JIT)
+def derivative(x1, x2, x3, x4, u, ap):
+    """ẋ of the actuator (SPEC §2) at state (x1..x4) with valve command u."""
+    a1 = ap[AREA_CAP]
+    a2 = ap[AREA_ROD]
+    beta = ap[BULK]
+    m = ap[MASS]
+    v1 = ap[V_CAP0] + a1 * x1
+    v2 = ap[V_ROD0] - a2 * x1
+    q1, q2 = valve_flows(x3, x4, u, ap)
+    leak = ap[LEAKAGE] * (x3 - x4)
+    dx2 = (a1 * x3 - a2 * x4 - m * ap[GRAVITY] - ap[DAMPING] * x2) / m
+    dx3 = beta * (-a1 * x2 - leak + q1) / v1
+    dx4 = beta * (a2 * x2 + leak - q2) / v2
+    return x2, dx2, dx3, dx4
+
+
+@njit(**_JIT)
+def rk4_step(x1, x2, x3, x4, u, ap, dt):
+    """One classical Runge-Kutta step of length dt [s] with u held (zero-order hold)."""
+    h2 = 0.5 * dt
+    a1, a2, a3, a4 = derivative(x1, x2, x3, x4, u, ap)
+    b1, b2, b3, b4 = derivative(x1 + h2 * a1, x2 + h2 * a2, x3 + h2 * a3, x4 + h2 * a4, u, ap)
+    c1, c2, c3, c4 = derivative(x1 + h2 * b1, x2 + h2 * b2, x3 + h2 * b3, x4 + h2 * b4, u, ap)
+    d1, d2, d3, d4 = derivative(x1 + dt * c1, x2 + dt * c2, x3 + dt * c3, x4 + dt * c4, u, ap)
+    s = dt / 6.0
+    return (x1 + s * (a1 + 2.0 * b1 + 2.0 * c1 + d1),
+            x2 + s * (a2 + 2.0 * b2 + 2.0 * c2 + d2),
+            x3 + s * (a3 + 2.0 * b3 + 2.0 * c3 + d3),
+            x4 + s * (a4 + 2.0 * b4 + 2.0 * c4 + d4))
+
+
+@njit(**_JIT)
+def plant_step(x1, x2, x3, x4, u, ap, dt):
+    """SPEC §5 step 6: RK4 step, then P1, P2 clipped into [Pr, Ps]."""
+    y, v, p1, p2 = rk4_step(x1, x2, x3, x4, u, ap, dt)
+    lo = ap[P_RETURN]
+    hi = ap[P_SUPPLY]
+    return y, v, min(max(p1, lo), hi), min(max(p2, lo), hi)
+
+
+@njit(**_JIT)
+def diverged(x1, x2, x3, x4, y_limit):
+    """SPEC §5 step 7: a state that is not finite or |y| > y_limit [m]."""
+    if not (math.isfinite(x1) and math.isfinite(x2) and math.isfinite(x3) and math.isfinite(x4)):
+        return True
+    return abs(x1) > y_limit

@@ -1,0 +1,280 @@
+"""Load ``config/*.yaml`` (ROS 2 ``ros__parameters`` form) into typed dataclasses.
+
+A parameter file looks like what ``ros2 run ... --ros-args --params-file``
+takes::
+
+    /**:
+      ros__parameters:
+        actuator:
+          mass: 1500.0
+
+Nested keys become dotted parameter names (``actuator.mass``), exactly as
+rclpy declares them, so the nodes and the library read the same files.
+Every value is checked; a bad one raises :class:`ConfigError` whose message is
+one line naming the file, the key and the value.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+import yaml
+
+from .errors import ConfigError
+from .params import (
+    X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Reference,
+)
+
+def _config_dir() -> Path:
+    """The shipped ``config/``: the source tree's, or ``share/has_control/config``
+    of an install prefix (pip or colcon) above the package."""
+    here = Path(__file__).resolve().parent
+    candidates = [here.parent / "config"]
+    candidates += [p / "share" / "has_control" / "config" for p in here.parents]
+    for c in candidates:
+        if (c / "actuator.yaml").is_file():
+            return c
+    return candidates[0]
+
+
+#: The reference configuration files shipped with the package.
+CONFIG_DIR = _config_dir()
+
+
+def _positive(v: float) -> str | None:
+    return None if v > 0 else "must be > 0"
+
+
+def _non_negative(v: float) -> str | None:
+    return None if v >= 0 else "must be >= 0"
+
+
+def _any(v: float) -> str | None:
+    return None
+
+
+def _pair(check: Callable[[float], str | None]) -> Callable[[Any], str | None]:
+    def inner(v):
+        for x in v:
+            msg = check(x)
+            if msg:
+                return msg
+        return None
+    return inner
+
+
+# key -> (section attribute, field name, kind, check)
+#   kind: "float", "pair" (two floats), or a dict of allowed strings
+_SCHEMA: dict[str, tuple[str, str, Any, Callable]] = {}
+
+
+def _register(prefix: str, section: str, fields: Mapping[str, tuple[Any, Callable]], names=None):
+    for name, (kind, check) in fields.items():
+        attr = (names or {}).get(name, name)
+        _SCHEMA[f"{prefix}.{name}"] = (section, attr, kind, check)
+
+
+_register("actuator", "actuator", {
+    "mass": ("float", _positive), "area_cap": ("float", _positive),
+    "area_rod": ("float", _positive), "bulk_modulus": ("float", _positive),
+    "damping": ("float", _non_negative), "leakage": ("float", _non_negative),
+    "volume_cap0": ("float", _positive), "volume_rod0": ("float", _positive),
+    "gravity": ("float", _non_negative), "supply_pressure": ("float", _positive),
+    "return_pressure": ("float", _non_negative),
+    "discharge_coefficient": ("float", _positive), "area_gradient": ("float", _positive),
+    "oil_density": ("float", _positive), "valve_gain": ("float", _positive),
+})
+_register("gains", "gains", {k: ("float", _positive) for k in ("k1", "k2", "k3")})
+_register("adaptation", "adaptation", {
+    "gain": ("pair", _pair(_non_negative)), "initial": ("pair", _pair(_any)),
+    "lower": ("pair", _pair(_any)), "upper": ("pair", _pair(_any)),
+    "x3d_derivative": (X3D_MODES, None),
+})
+_register("reference", "reference", {
+    "kind": (REFERENCE_KINDS, None), "amplitude": ("float", _any),
+    "omega": ("float", _positive), "offset": ("float", _any), "t0": ("float", _non_negative),
+    "rise": ("float", _non_negative), "f0": ("float", _non_negative),
+    "f1": ("float", _non_negative), "sweep": ("float", _positive),
+})
+_register("simulation", "episode", {
+    "step": ("float", _positive), "horizon": ("float", _positive),
+    "y_limit": ("float", _positive),
+})
+_register("cost", "episode", {k: ("float", _non_negative) for k in ("lambda1", "lambda2", "lambda3")})
+_register("metrics", "episode", {
+    "skip_start": ("float", _non_negative), "skip_end": ("float", _non_negative),
+})
+
+#: Keys that belong to the nodes and tools, not to the episode; accepted and
+#: passed through (their owners validate them).
+_PASSTHROUGH_PREFIXES = ("plant.", "controller.", "tuner.", "swarm.", "recorder.")
+_PASSTHROUGH_KEYS = {"use_sim_time"}
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that reads ``7.0e8`` and ``1e-3`` as floats, as ROS 2's
+    parameter parser does (PyYAML's YAML 1.1 rules read them as strings)."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."))
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{'a': {'b': 1}}`` → ``{'a.b': 1}`` (the way rclpy names nested parameters)."""
+    flat: dict[str, Any] = {}
+    for key, value in tree.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(flatten(value, name + "."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def read_parameter_file(path: str | Path) -> dict[str, Any]:
+    """Flat parameters of every node section of one ``ros__parameters`` file.
+
+    Sections are merged in file order (``/**`` and node names alike); a file
+    without any ``ros__parameters`` section is an error.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    try:
+        doc = yaml.load(text, Loader=_Loader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        raise ConfigError(f"{path}: not valid YAML{where}") from None
+    if not isinstance(doc, Mapping):
+        raise ConfigError(f"{path}: expected a mapping of node names to ros__parameters")
+    flat: dict[str, Any] = {}
+    for node, body in doc.items():
+        if not isinstance(body, Mapping) or "ros__parameters" not in body:
+            raise ConfigError(f"{path}: section '{node}' has no ros__parameters")
+        params = body["ros__parameters"]
+        if params is None:
+            continue
+        if not isinstance(params, Mapping):
+            raise ConfigError(f"{path}: {node}.ros__parameters is not a mapping")
+        flat.update(flatten(params))
+    return flat
+
+
+def _coerce(key: str, value: Any, kind: Any, source: str) -> Any:
+    def bad(why: str) -> ConfigError:
+        return ConfigError(f"{source}: {key} = {value!r}: {why}")
+
+    def number(v: Any) -> float:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise bad("expected a number")
+        v = float(v)
+        if not math.isfinite(v):
+            raise bad("must be finite")
+        return v
+
+    if kind == "float":
+        return number(value)
+    if kind == "pair":
+        if not isinstance(value, (list, tuple)) or len(value) != 2:
+            raise bad("expected a list of two numbers")
+        return tuple(number(v) for v in value)
+    if isinstance(kind, Mapping):
+        if not isinstance(value, str) or value not in kind:
+            raise bad(f"expected one of {', '.join(sorted(kind))}")
+        return value
+    raise AssertionError(kind)
+
+
+def build_config(flat: Mapping[str, Any], source: str = "parameters",
+                 base: Config | None = None, sources: Mapping[str, str] | None = None) -> Config:
+    """Validated :class:`Config` from flat dotted parameters over ``base``.
+
+    ``sources`` maps a key to the file it came from, for the error message.
+    Unknown keys are errors; keys of the nodes and tools pass through.
+    """
+    base = base or Config()
+    sections = {name: dataclasses.asdict(getattr(base, name)) for name in
+                ("actuator", "gains", "adaptation", "reference", "episode")}
+    where = lambda key: (sources or {}).get(key, source)  # noqa: E731
+    for key, value in flat.items():
+        if key in _PASSTHROUGH_KEYS or key.startswith(_PASSTHROUGH_PREFIXES):
+            continue
+        if key not in _SCHEMA:
+            raise ConfigError(f"{where(key)}: {key}: unknown parameter")
+        section, attr, kind, check = _SCHEMA[key]
+        v = _coerce(key, value, kind, where(key))
+        if check is not None:
+            msg = check(v)
+            if msg:
+                raise ConfigError(f"{where(key)}: {key} = {value!r}: {msg}")
+        sections[section][attr] = v
+    cfg = Config(
+        actuator=Actuator(**sections["actuator"]), gains=Gains(**sections["gains"]),
+        adaptation=Adaptation(**sections["adaptation"]),
+        reference=Reference(**sections["reference"]), episode=Episode(**sections["episode"]),
+    )
+    _check_relations(cfg, flat, where)
+    return cfg
+
+
+def _check_relations(cfg: Config, flat: Mapping[str, Any], where) -> None:
+    """Checks that involve more than one key, each blamed on the key that breaks it."""
+    a, ad, ep = cfg.actuator, cfg.adaptation, cfg.episode
+
+    def fail(key: str, value: Any, why: str):
+        raise ConfigError(f"{where(key)}: {key} = {value!r}: {why}")
+
+    if a.supply_pressure <= a.return_pressure:
+        fail("actuator.supply_pressure", a.supply_pressure,
+             f"must exceed actuator.return_pressure ({a.return_pressure})")
+    derived = a.derived_valve_gain()
+    if abs(a.valve_gain - derived) > 0.01 * derived:
+        fail("actuator.valve_gain", a.valve_gain,
+             f"disagrees with sqrt(2)*Cd*W/sqrt(rho) = {derived:.4g} by more than 1 %")
+    for i in range(2):
+        if ad.lower[i] > ad.upper[i]:
+            fail("adaptation.lower", list(ad.lower), f"lower[{i}] exceeds adaptation.upper[{i}] = {ad.upper[i]}")
+        if not ad.lower[i] <= ad.initial[i] <= ad.upper[i]:
+            fail("adaptation.initial", list(ad.initial), f"initial[{i}] outside [lower, upper]")
+    if ep.step >= ep.horizon:
+        fail("simulation.step", ep.step, f"must be smaller than simulation.horizon ({ep.horizon})")
+    start, end = ep.window()
+    if ep.skip_start + ep.skip_end >= ep.horizon or start > end:
+        key = "metrics.skip_end" if "metrics.skip_end" in flat else "metrics.skip_start"
+        fail(key, getattr(ep, key.split(".")[1]),
+             f"metric window [{ep.skip_start}, {ep.horizon} - {ep.skip_end}] s lies outside the horizon")
+
+
+def default_config_files() -> list[Path]:
+    """The package's own ``config/*.yaml`` that define the episode."""
+    return [CONFIG_DIR / name for name in ("actuator.yaml", "controller.yaml", "simulation.yaml")]
+
+
+def load_config(paths: Iterable[str | Path] = (), defaults: bool = True) -> Config:
+    """Config from the shipped files (if ``defaults``) overridden by ``paths`` in order."""
+    files = (default_config_files() if defaults else []) + [Path(p) for p in paths]
+    flat: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    for f in files:
+        for key, value in read_parameter_file(f).items():
+            flat[key] = value
+            sources[key] = str(f)
+    return build_config(flat, sources=sources)
+
+
+def config_parameters(cfg: Config) -> dict[str, Any]:
+    """The inverse of :func:`build_config`: flat ROS parameters of a Config."""
+    out: dict[str, Any] = {}
+    for key, (section, attr, kind, _) in _SCHEMA.items():
+        v = getattr(getattr(cfg, section), attr)
+        out[key] = list(v) if kind == "pair" else v
+    return out

@@ -1,0 +1,198 @@
+"""Typed parameter objects for the actuator, the ABC controller and an episode.
+
+Every default here is SPEC.md's reference configuration; the files in
+``config/`` repeat them in ``ros__parameters`` form and ``has_control.config``
+loads those files into these dataclasses. All quantities are SI.
+
+The numerical kernels take flat ``float64`` arrays (``as_array``) whose
+layout is fixed by the index constants below, so numba sees plain arrays.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# --- actuator array layout --------------------------------------------------
+MASS, AREA_CAP, AREA_ROD, BULK, DAMPING, LEAKAGE, V_CAP0, V_ROD0, GRAVITY, \
+    P_SUPPLY, P_RETURN, VALVE_GAIN = range(12)
+N_ACTUATOR = 12
+
+# --- controller (adaptation) array layout ----------------------------------
+SIGMA1, SIGMA2, A1_INIT, A2_INIT, A1_MIN, A2_MIN, A1_MAX, A2_MAX, X3D_MODE = range(9)
+N_CONTROLLER = 9
+X3D_ANALYTIC, X3D_BACKWARD = 0, 1
+X3D_MODES = {"analytic": X3D_ANALYTIC, "backward_difference": X3D_BACKWARD}
+
+# --- reference array layout -------------------------------------------------
+REF_KIND, REF_AMPLITUDE, REF_OMEGA, REF_OFFSET, REF_T0, REF_RISE, REF_F0, \
+    REF_F1, REF_SWEEP = range(9)
+N_REFERENCE = 9
+REF_ZERO, REF_SINE, REF_STEP, REF_CHIRP = range(4)
+REFERENCE_KINDS = {"zero": REF_ZERO, "sine": REF_SINE, "step": REF_STEP, "chirp": REF_CHIRP}
+
+# --- episode array layout ---------------------------------------------------
+DT, N_SAMPLES, LAMBDA1, LAMBDA2, LAMBDA3, WIN_START, WIN_END, Y_LIMIT = range(8)
+N_EPISODE = 8
+
+
+@dataclass(frozen=True)
+class Actuator:
+    """Physical parameters of the asymmetric cylinder and servo valve (SPEC §1).
+
+    mass [kg], areas [m²], bulk_modulus [Pa], damping [N·s/m],
+    leakage [m³/(s·Pa)], volumes [m³], gravity [m/s²], pressures [Pa],
+    discharge_coefficient [-], area_gradient [m], oil_density [kg/m³],
+    valve_gain G [m²·√(1/kg·m)] = √2·Cd·W·√(1/ρ)·ki, with ki = 1 so the
+    command u is the spool displacement in metres.
+    """
+
+    mass: float = 1500.0
+    area_cap: float = 5.67e-3
+    area_rod: float = 1.256e-3
+    bulk_modulus: float = 7.0e8
+    damping: float = 2600.0
+    leakage: float = 3.0e-13
+    volume_cap0: float = 1.0e-3
+    volume_rod0: float = 1.0e-3
+    gravity: float = 9.8
+    supply_pressure: float = 1.78e7
+    return_pressure: float = 0.0
+    discharge_coefficient: float = 0.7
+    area_gradient: float = 1.12e-2
+    oil_density: float = 860.0
+    valve_gain: float = 3.78e-4
+
+    def derived_valve_gain(self) -> float:
+        """√2·Cd·W/√ρ (ki = 1), for checking ``valve_gain`` against Cd, W, ρ."""
+        return math.sqrt(2.0) * self.discharge_coefficient * self.area_gradient / math.sqrt(self.oil_density)
+
+    def initial_state(self) -> np.ndarray:
+        """SPEC §4: y = 0, ẏ = 0, P2 = Ps/2, P1 from the static force balance."""
+        p2 = 0.5 * self.supply_pressure
+        p1 = (self.mass * self.gravity + self.area_rod * p2) / self.area_cap
+        return np.array([0.0, 0.0, p1, p2])
+
+    def as_array(self) -> np.ndarray:
+        return np.array([
+            self.mass, self.area_cap, self.area_rod, self.bulk_modulus, self.damping,
+            self.leakage, self.volume_cap0, self.volume_rod0, self.gravity,
+            self.supply_pressure, self.return_pressure, self.valve_gain,
+        ], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Gains:
+    """Back-stepping gains k1 [1/s], k2 [1/s], k3 [1/s]."""
+
+    k1: float = 150.0
+    k2: float = 158.0
+    k3: float = 162.0
+
+    def as_tuple(self) -> tuple[float, float, float]:
+        return (self.k1, self.k2, self.k3)
+
+
+@dataclass(frozen=True)
+class Adaptation:
+    """Parameter adaptation of â = (â1, â2) ≈ (Bp, Ci) with projection (SPEC §3).
+
+    gain = (σ1, σ2); initial, lower, upper in the units of (Bp, Ci).
+    x3d_derivative: 'analytic' (reference) or 'backward_difference'.
+    """
+
+    gain: tuple[float, float] = (95000.0, 1.0e-49)
+    initial: tuple[float, float] = (2600.0, 4.0e-12)
+    lower: tuple[float, float] = (2600.0, 4.0e-12)
+    upper: tuple[float, float] = (3000.0, 1.0e-11)
+    x3d_derivative: str = "analytic"
+
+    def as_array(self) -> np.ndarray:
+        return np.array([
+            self.gain[0], self.gain[1], self.initial[0], self.initial[1],
+            self.lower[0], self.lower[1], self.upper[0], self.upper[1],
+            float(X3D_MODES[self.x3d_derivative]),
+        ], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Reference:
+    """Desired displacement x1d(t) [m] with analytic derivatives up to the third.
+
+    kind 'sine': offset + amplitude·sin(omega·t)      (SPEC: 0.11·sin 2t)
+    kind 'step': offset + amplitude·s((t − t0)/rise), s a septic smooth step
+                 (C³, so x1d⁽³⁾ exists); rise = 0 gives a hard step.
+    kind 'chirp': offset + amplitude·sin(2π(f0·t + (f1 − f0)·t²/(2·sweep)))
+    kind 'zero': x1d ≡ offset.
+    """
+
+    kind: str = "sine"
+    amplitude: float = 0.11
+    omega: float = 2.0
+    offset: float = 0.0
+    t0: float = 0.0
+    rise: float = 0.05
+    f0: float = 0.1
+    f1: float = 2.0
+    sweep: float = 10.0
+
+    def as_array(self) -> np.ndarray:
+        return np.array([
+            float(REFERENCE_KINDS[self.kind]), self.amplitude, self.omega, self.offset,
+            self.t0, self.rise, self.f0, self.f1, self.sweep,
+        ], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Episode:
+    """Time grid, cost weights and metric window of one run (SPEC §5–6).
+
+    step Δt [s], horizon T [s]; cost J = Σ(λ1|e1| + λ2·u² + λ3|e1|[e1<0])·Δt;
+    metrics over skip_start ≤ t ≤ T − skip_end [s]; a run whose |y| exceeds
+    y_limit [m] or whose state is not finite has diverged.
+    """
+
+    step: float = 3.0e-4
+    horizon: float = 10.0
+    lambda1: float = 0.001
+    lambda2: float = 0.999
+    lambda3: float = 10.0
+    skip_start: float = 0.5
+    skip_end: float = 0.5
+    y_limit: float = 1.0
+
+    @property
+    def samples(self) -> int:
+        """n = round(T/Δt)."""
+        return int(round(self.horizon / self.step))
+
+    def window(self) -> tuple[int, int]:
+        """Inclusive sample range [ceil(skip_start/Δt), floor((T − skip_end)/Δt)]."""
+        eps = 1e-9
+        start = math.ceil(self.skip_start / self.step - eps)
+        end = math.floor((self.horizon - self.skip_end) / self.step + eps)
+        return start, min(end, self.samples - 1)
+
+    def as_array(self) -> np.ndarray:
+        start, end = self.window()
+        return np.array([
+            self.step, float(self.samples), self.lambda1, self.lambda2, self.lambda3,
+            float(start), float(end), self.y_limit,
+        ], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Config:
+    """Everything one episode needs: the reference configuration by default."""
+
+    actuator: Actuator = field(default_factory=Actuator)
+    gains: Gains = field(default_factory=Gains)
+    adaptation: Adaptation = field(default_factory=Adaptation)
+    reference: Reference = field(default_factory=Reference)
+    episode: Episode = field(default_factory=Episode)
+
+
+#: The paper's hand-set gains and its PSO+CP+TVAC result (SPEC §8).
+MANUAL_GAINS = Gains(150.0, 158.0, 162.0)
+PAPER_TUNED_GAINS = Gains(656.11, 656.13, 656.14)

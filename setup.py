@@ -1,0 +1,28 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "has_control"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools", "numpy", "numba", "scipy", "matplotlib", "pyyaml"],
+    zip_safe=True,
+    maintainer="has_control maintainers",
+    maintainer_email="maintainers@has-control.dev",
+    description="Adaptive back-stepping control of a hydraulic suspension actuator, tuned by PSO.",
+    license="Apache-2.0",
+    extras_require={"test": ["pytest"]},
+    entry_points={
+        "console_scripts": [
+            "has-control = has_control.cli:main",
+        ],
+    },
+)
