@@ -11,9 +11,9 @@ import math
 
 from numba import njit
 
+from .actuator import valve_drops
 from .params import (
-    A1_MAX, A1_MIN, A2_MAX, A2_MIN, AREA_CAP, AREA_ROD, BULK, GRAVITY, MASS, P_RETURN,
-    P_SUPPLY, SIGMA1, SIGMA2, V_CAP0, V_ROD0, VALVE_GAIN, X3D_BACKWARD, X3D_MODE,
+    A1_MAX, A1_MIN, A2_MAX, A2_MIN, AREA_CAP, AREA_ROD, BULK, GRAVITY, MASS, SIGMA1, SIGMA2, V_CAP0, V_ROD0, VALVE_GAIN, X3D_BACKWARD, X3D_MODE,
 )
 
 _JIT = dict(cache=True, error_model="numpy", nogil=True)
@@ -74,15 +74,8 @@ def abc_law(x1, x2, p1, p2, a1_hat, a2_hat, x3d_prev, has_prev,
         dx3d = m * k2 * de2 + m * de1 + m * ddx2d + rate1 * x2 + a1_hat * v_hat
 
     num = k3 * e3 + gc + a2_hat * hu + dx3d + e2 / m
-    ps = ap[P_SUPPLY]
-    pr = ap[P_RETURN]
-    if num >= 0.0:
-        big_e1 = math.sqrt(max(ps - p1, 0.0))
-        big_e2 = math.sqrt(max(p2 - pr, 0.0))
-    else:
-        big_e1 = math.sqrt(max(p1 - pr, 0.0))
-        big_e2 = math.sqrt(max(ps - p2, 0.0))
-    b3 = (a1 * big_e1 / v1 + a2 * big_e2 / v2) * ap[VALVE_GAIN] * beta
+    d1, d2 = valve_drops(p1, p2, num >= 0.0, ap)      # the edges sign(N) opens
+    b3 = (a1 * math.sqrt(d1) / v1 + a2 * math.sqrt(d2) / v2) * ap[VALVE_GAIN] * beta
     u = num / b3 if b3 > 0.0 else 0.0
     return u, e1, e2, e3, rate1, rate2, x3d
 

@@ -27,16 +27,25 @@ def valve_flows(p1, p2, u, ap):
     q1 = G·u·[s(u)√(Ps − P1) + s(−u)√(P1 − Pr)],
     q2 = G·u·[s(u)√(P2 − Pr) + s(−u)√(Ps − P2)], roots floored at 0.
     """
+    d1, d2 = valve_drops(p1, p2, u >= 0.0, ap)
+    gu = ap[VALVE_GAIN] * u
+    return gu * math.sqrt(d1), gu * math.sqrt(d2)
+
+
+@njit(**_JIT)
+def valve_drops(p1, p2, opening, ap):
+    """Pressure drops [Pa] across the two metering edges, floored at 0.
+
+    opening (u ≥ 0): (Ps − P1, P2 − Pr); otherwise (P1 − Pr, Ps − P2).
+    The choice is written as s·a + (1 − s)·b with s ∈ {0, 1}, exact for
+    finite values, so compiled loops over candidates stay branch-free.
+    """
     ps = ap[P_SUPPLY]
     pr = ap[P_RETURN]
-    if u >= 0.0:
-        d1 = ps - p1
-        d2 = p2 - pr
-    else:
-        d1 = p1 - pr
-        d2 = ps - p2
-    gu = ap[VALVE_GAIN] * u
-    return gu * math.sqrt(max(d1, 0.0)), gu * math.sqrt(max(d2, 0.0))
+    s = 1.0 if opening else 0.0
+    d1 = s * (ps - p1) + (1.0 - s) * (p1 - pr)
+    d2 = s * (p2 - pr) + (1.0 - s) * (ps - p2)
+    return max(d1, 0.0), max(d2, 0.0)
 
 
 @njit(**_JIT)

@@ -68,9 +68,94 @@ def cmd_simulate(args) -> int:
     return 0
 
 
+class Progress:
+    """One self-rewriting status line on a terminal; silent when piped."""
+
+    def __init__(self, label: str, stream=None):
+        self.stream = stream or sys.stderr
+        self.enabled = self.stream.isatty()
+        self.label = label
+        self.t0 = None
+
+    def __call__(self, swarm) -> None:
+        import time
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        self.t0 = self.t0 or now - 1e-9
+        rate = swarm.evaluations / max(now - self.t0, 1e-9)
+        total = swarm.settings.iterations
+        filled = int(30 * swarm.iteration / total)
+        self.stream.write(f"\r{self.label} [{'#' * filled}{'.' * (30 - filled)}] "
+                          f"{swarm.iteration}/{total}  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s ")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled:
+            self.stream.write("\n")
+
+
+def _tuning_args(args):
+    from .tuning import load_tuning
+    t = load_tuning(args.config or [])
+    changes = {k: v for k, v in (("variant", args.variant), ("seed", args.seed),
+                                 ("particles", args.particles), ("iterations", args.iterations))
+               if v is not None}
+    try:
+        return t.replace(**changes)
+    except HasControlError as exc:
+        raise HasControlError(f"command line: {exc}") from None
+
+
+def cmd_tune(args) -> int:
+    from .tuning import tune
+    cfg = _load(args)
+    tuning = _tuning_args(args)
+    progress = Progress(f"{tuning.swarm.variant} seed {tuning.seed}")
+    try:
+        res = tune(cfg, tuning, callback=progress)
+    finally:
+        progress.close()
+    out = res.as_json()
+    if args.out:
+        from .plots import plot_convergence, plot_gains
+        d = Path(args.out)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "tune.json").write_text(json.dumps(out, indent=1) + "\n")
+        plot_convergence([(res.variant, res.result)], d / "convergence.png")
+        plot_gains(res.result, d / "gains.png", f"{res.variant}, seed {res.seed}")
+    if args.json:
+        print(json.dumps(out))
+    else:
+        k = res.gains
+        print(f"{res.variant}, seed {res.seed}: k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), "
+              f"J = {res.result.fun:.6e} after {res.result.nit} iterations, "
+              f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
+        if args.out:
+            print(f"wrote {Path(args.out) / 'tune.json'}, convergence.png, gains.png")
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be >= 1")
+    return v
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block) and exit status 2."""
+
+    def error(self, message):
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="has-control", description=__doc__.splitlines()[0])
-    sub = p.add_subparsers(dest="command", required=True)
+    p = _Parser(prog="has-control", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     s = sub.add_parser("simulate", help="run one episode with one gain set and print its score")
     s.add_argument("--gains", nargs=3, metavar=("K1", "K2", "K3"),
@@ -82,6 +167,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--plot", metavar="FILE.png", help="write tracking and error figures")
     s.add_argument("--trace", metavar="FILE.csv", help="write the time series")
     s.set_defaults(func=cmd_simulate)
+
+    t = sub.add_parser("tune", help="tune k1, k2, k3 with a particle swarm")
+    t.add_argument("--variant", choices=("pso", "pso-cp", "pso-cp-tvac"),
+                   help="optimiser (default: config/tuner.yaml, pso-cp-tvac)")
+    t.add_argument("--seed", type=int, help="random seed (default 1)")
+    t.add_argument("--particles", type=_positive_int, metavar="N", help="swarm size (default 80)")
+    t.add_argument("--iterations", type=_positive_int, metavar="N", help="iterations (default 100)")
+    t.add_argument("--config", action="append", metavar="FILE",
+                   help="ros__parameters YAML (episode and swarm.* keys; repeatable)")
+    t.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
+    t.add_argument("--out", metavar="DIR", help="write tune.json, convergence.png, gains.png")
+    t.add_argument("--json", action="store_true", help="print one JSON object")
+    t.set_defaults(func=cmd_tune)
     return p
 
 

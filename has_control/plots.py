@@ -27,6 +27,42 @@ def plot_tracking(traces: Sequence[tuple[str, "object"]], path: str | Path) -> P
     ax2.legend(loc="upper right", fontsize=8)
     ax2.ticklabel_format(axis="y", style="sci", scilimits=(0, 0))
     fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_convergence(runs: Sequence[tuple[str, "object"]], path: str | Path) -> Path:
+    """Best cost J per iteration, one line per labelled SwarmResult (paper Fig. 6)."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for label, result in runs:
+        ax.plot([h.best_cost for h in result.history], lw=1.2, label=label)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("best J")
+    ax.set_title("Convergence of the fitness J (paper Fig. 6)")
+    ax.ticklabel_format(axis="y", style="sci", scilimits=(0, 0))
+    ax.legend()
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_gains(result, path: str | Path, title: str = "") -> Path:
+    """Every particle's k1, k2, k3 per iteration, and the best (paper Figs. 3-5)."""
+    import numpy as np
+    fig, axes = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
+    its = [h.iteration for h in result.history]
+    for d, ax in enumerate(axes):
+        for h in result.history:
+            if h.positions.size:
+                ax.plot(np.full(len(h.positions), h.iteration), h.positions[:, d], ",", color="0.6")
+        ax.plot(its, [h.best_position[d] for h in result.history], "C3", lw=1.5, label="best")
+        ax.set_ylabel(f"k{d + 1} [1/s]")
+    axes[0].set_title(title or "Gains over iterations (paper Figs. 3-5)")
+    axes[0].legend(loc="upper right")
+    axes[-1].set_xlabel("iteration")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _save(fig, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

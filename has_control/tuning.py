@@ -1,0 +1,137 @@
+"""Tune the ABC gains (k1, k2, k3) with a particle swarm over the batch evaluator.
+
+Depends inward only: swarm (optimiser) and episode (evaluator). The tuner
+node uses the same :func:`load_tuning` and the same :class:`Swarm`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+import numpy as np
+
+from .config import default_config_files, read_parameter_file
+from .episode import evaluate
+from .errors import ConfigError
+from .params import Config
+from .swarm import Swarm, SwarmError, SwarmResult, SwarmSettings, minimize
+
+TUNER_FILE = default_config_files()[0].parent / "tuner.yaml"
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """A tuning session's settings: the swarm, the search box and the seed."""
+
+    swarm: SwarmSettings = SwarmSettings()
+    lower: tuple[float, float, float] = (150.0, 150.0, 150.0)
+    upper: tuple[float, float, float] = (1200.0, 800.0, 800.0)
+    seed: int = 1
+
+    @property
+    def bounds(self):
+        return (np.array(self.lower), np.array(self.upper))
+
+    def replace(self, **changes) -> "Tuning":
+        """Override seed, lower, upper or any SwarmSettings field; validated."""
+        top = {k: changes.pop(k) for k in ("seed", "lower", "upper") if k in changes}
+        t = dataclasses.replace(self, swarm=dataclasses.replace(self.swarm, **changes), **top)
+        t.swarm.validate()
+        Swarm(t.bounds, dataclasses.replace(t.swarm, particles=1), 0)    # bounds check
+        return t
+
+
+_INT_KEYS = {"particles", "iterations", "seed"}
+_STR_KEYS = {"variant", "crazy_redraw", "crazy_probability"}
+_LIST_KEYS = {"lower", "upper"}
+
+
+def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] | None = None,
+                           base: Tuning | None = None) -> Tuning:
+    """Validated :class:`Tuning` from flat ``swarm.*`` parameters (others ignored)."""
+    t = base or Tuning()
+    fields = {f.name for f in dataclasses.fields(SwarmSettings)} | {"seed"} | _LIST_KEYS
+    changes: dict[str, Any] = {}
+    for key, value in flat.items():
+        if not key.startswith("swarm."):
+            continue
+        name = key[len("swarm."):]
+        where = (sources or {}).get(key, "parameters")
+
+        def bad(why):
+            return ConfigError(f"{where}: {key} = {value!r}: {why}")
+        if name not in fields:
+            raise bad("unknown parameter")
+        if name in _INT_KEYS:
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise bad("expected a whole number")
+        elif name in _STR_KEYS:
+            if not isinstance(value, str):
+                raise bad("expected a string")
+        elif name in _LIST_KEYS:
+            if (not isinstance(value, (list, tuple)) or len(value) != 3
+                    or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value)):
+                raise bad("expected a list of three numbers")
+            value = tuple(float(v) for v in value)
+        elif isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad("expected a number")
+        else:
+            value = float(value)
+        changes[name] = value
+        try:
+            t.replace(**changes)
+        except SwarmError as exc:
+            raise bad(str(exc).split(": ", 2)[-1]) from None
+    return t.replace(**changes)
+
+
+def load_tuning(paths: Iterable[str | Path] = (), defaults: bool = True) -> Tuning:
+    """Tuning settings from config/tuner.yaml (if ``defaults``) and ``paths``."""
+    files = ([TUNER_FILE] if defaults else []) + [Path(p) for p in paths]
+    flat: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    for f in files:
+        for k, v in read_parameter_file(f).items():
+            flat[k] = v
+            sources[k] = str(f)
+    return tuning_from_parameters(flat, sources)
+
+
+@dataclass
+class TuneResult:
+    """A finished tuning session: the swarm's result plus what it took."""
+
+    variant: str
+    seed: int
+    result: SwarmResult
+    seconds: float
+
+    @property
+    def gains(self) -> tuple[float, float, float]:
+        return tuple(float(v) for v in self.result.x)
+
+    def as_json(self) -> dict:
+        """Keys of ``has-control tune --json``."""
+        def num(x):
+            return float(x) if math.isfinite(x) else "inf"
+        return {"variant": self.variant, "seed": self.seed, "gains": list(self.gains),
+                "J": num(self.result.fun), "iterations": self.result.nit,
+                "evaluations": self.result.nfev, "seconds": self.seconds,
+                "history": [num(h.best_cost) for h in self.result.history]}
+
+
+def tune(cfg: Config | None = None, tuning: Tuning | None = None,
+         callback: Callable[[Swarm], bool | None] | None = None,
+         swarm: Swarm | None = None) -> TuneResult:
+    """Run one tuning session on the batch evaluator (``swarm`` to resume one)."""
+    cfg = cfg or Config()
+    tuning = tuning or Tuning()
+    if swarm is None:
+        swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
+    t0 = time.perf_counter()
+    result = minimize(lambda k: evaluate(k, cfg), None, swarm=swarm, callback=callback)
+    return TuneResult(swarm.settings.variant, swarm.seed, result, time.perf_counter() - t0)

@@ -1,0 +1,59 @@
+"""has-control simulate: JSON keys, errors as one line and exit status 2."""
+import json
+import subprocess
+import sys
+
+import pytest
+
+from test_episode import PINNED
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "has_control.cli", *args],
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_simulate_json_gives_the_reference_numbers():
+    r = run("simulate", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert set(out) == {"J", "e_max", "e_mu", "e_sigma", "samples", "diverged"}
+    assert out["samples"] == 33333 and out["diverged"] is False
+    assert [out[k] for k in ("J", "e_max", "e_mu", "e_sigma")] == pytest.approx(
+        PINNED[(150.0, 158.0, 162.0)], rel=1e-12)
+
+
+def test_diverged_run_prints_inf_as_string():
+    r = run("simulate", "--gains", "1e4", "1e4", "1e4", "--json", "--duration", "2")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["J"] == "inf" and out["diverged"] is True
+
+
+def test_trace_and_plot_files(tmp_path):
+    csv, png = tmp_path / "t.csv", tmp_path / "p.png"
+    r = run("simulate", "--duration", "1.5", "--trace", str(csv), "--plot", str(png))
+    assert r.returncode == 0, r.stderr
+    lines = csv.read_text().splitlines()
+    assert lines[0].startswith("t,x1d,y,ydot,P1,P2,u,e1") and len(lines) == 1 + 5000
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("args, culprit", [
+    (["--gains", "150", "-1", "162"], "--gains: K2 = '-1'"),
+    (["--gains", "150", "abc", "162"], "--gains: K2 = 'abc'"),
+    (["--duration", "0.9"], "metrics.skip"),
+])
+def test_bad_arguments_fail_in_one_line(args, culprit):
+    r = run("simulate", *args)
+    assert r.returncode == 2
+    assert culprit in r.stderr and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_bad_config_file_fails_in_one_line(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    actuator:\n      mass: 0\n")
+    r = run("simulate", "--config", str(p))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip() == f"has-control: error: {p}: actuator.mass = 0: must be > 0"

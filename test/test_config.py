@@ -1,0 +1,63 @@
+"""Parameter files: the shipped ones are the reference configuration; bad ones fail in one line."""
+import pytest
+
+from has_control.config import CONFIG_DIR, config_parameters, load_config
+from has_control.errors import ConfigError
+from has_control.params import Config
+
+
+def test_shipped_files_are_the_reference_configuration():
+    assert load_config() == Config()
+    assert (CONFIG_DIR / "actuator.yaml").read_text().count("/**:") == 1
+
+
+def test_parameters_round_trip():
+    from has_control.config import build_config
+    assert build_config(config_parameters(Config())) == Config()
+
+
+def _write(tmp_path, body: str, name="bad.yaml"):
+    p = tmp_path / name
+    p.write_text("/**:\n  ros__parameters:\n" + body)
+    return p
+
+
+@pytest.mark.parametrize("body, key, value", [
+    ("    actuator:\n      mass: -1500.0\n", "actuator.mass", "-1500.0"),
+    ("    actuator:\n      area_cap: 0.0\n", "actuator.area_cap", "0.0"),
+    ("    actuator:\n      volume_rod0: -1.0e-3\n", "actuator.volume_rod0", "-0.001"),
+    ("    simulation:\n      step: 0.0\n", "simulation.step", "0.0"),
+    ("    actuator:\n      supply_pressure: 1.0e+5\n      return_pressure: 2.0e+5\n",
+     "actuator.supply_pressure", "100000.0"),
+    ("    adaptation:\n      lower: [3500.0, 4.0e-12]\n", "adaptation.lower", "3500.0"),
+    ("    metrics:\n      skip_end: 12.0\n", "metrics.skip_end", "12.0"),
+    ("    actuator:\n      mas: 1500.0\n", "actuator.mas", "unknown parameter"),
+    ("    actuator:\n      mass: '1500'\n", "actuator.mass", "'1500'"),
+    ("    gains:\n      k1: .nan\n", "gains.k1", "nan"),
+    ("    reference:\n      kind: square\n", "reference.kind", "square"),
+])
+def test_bad_values_name_file_key_and_value(tmp_path, body, key, value):
+    path = _write(tmp_path, body)
+    with pytest.raises(ConfigError) as info:
+        load_config([path])
+    msg = str(info.value)
+    assert "\n" not in msg
+    assert str(path) in msg and key in msg and value in msg
+
+
+def test_malformed_files(tmp_path):
+    p = tmp_path / "broken.yaml"
+    p.write_text("/**:\n  ros__parameters: [\n")
+    with pytest.raises(ConfigError, match="broken.yaml: not valid YAML"):
+        load_config([p])
+    p.write_text("actuator:\n  mass: 3\n")
+    with pytest.raises(ConfigError, match="has no ros__parameters"):
+        load_config([p])
+    with pytest.raises(ConfigError, match="missing.yaml: cannot read"):
+        load_config([tmp_path / "missing.yaml"])
+
+
+def test_later_files_override_earlier_ones_and_yaml_floats_read_like_ros(tmp_path):
+    p = _write(tmp_path, "    actuator:\n      mass: 1.2e3\n    gains:\n      k1: 2e2\n")
+    cfg = load_config([p])
+    assert cfg.actuator.mass == 1200.0 and cfg.gains.k1 == 200.0
