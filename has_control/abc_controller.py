@@ -11,9 +11,9 @@ import math
 
 from numba import njit
 
-from .actuator import valve_drops
+from .actuator import chamber_volumes, valve_drops
 from .params import (
-    A1_MAX, A1_MIN, A2_MAX, A2_MIN, AREA_CAP, AREA_ROD, BULK, GRAVITY, MASS, SIGMA1, SIGMA2, V_CAP0, V_ROD0, VALVE_GAIN, X3D_BACKWARD, X3D_MODE,
+    A1_MAX, A1_MIN, A2_MAX, A2_MIN, AREA_CAP, AREA_ROD, BULK, GRAVITY, MASS, SIGMA1, SIGMA2, VALVE_GAIN, X3D_BACKWARD, X3D_MODE,
 )
 
 _JIT = dict(cache=True, error_model="numpy", nogil=True)
@@ -47,8 +47,7 @@ def abc_law(x1, x2, p1, p2, a1_hat, a2_hat, x3d_prev, has_prev,
     a2 = ap[AREA_ROD]
     beta = ap[BULK]
     g = ap[GRAVITY]
-    v1 = ap[V_CAP0] + a1 * x1
-    v2 = ap[V_ROD0] - a2 * x1
+    v1, v2 = chamber_volumes(x1, ap)
     force = a1 * p1 - a2 * p2
 
     e1 = r0 - x1

@@ -49,14 +49,19 @@ def valve_drops(p1, p2, opening, ap):
 
 
 @njit(**_JIT)
+def chamber_volumes(y, ap):
+    """(V1, V2) [m³] at displacement y [m]: V01 + A1·y and V02 − A2·y."""
+    return ap[V_CAP0] + ap[AREA_CAP] * y, ap[V_ROD0] - ap[AREA_ROD] * y
+
+
+@njit(**_JIT)
 def derivative(x1, x2, x3, x4, u, ap):
     """ẋ of the actuator (SPEC §2) at state (x1..x4) with valve command u."""
     a1 = ap[AREA_CAP]
     a2 = ap[AREA_ROD]
     beta = ap[BULK]
     m = ap[MASS]
-    v1 = ap[V_CAP0] + a1 * x1
-    v2 = ap[V_ROD0] - a2 * x1
+    v1, v2 = chamber_volumes(x1, ap)
     q1, q2 = valve_flows(x3, x4, u, ap)
     leak = ap[LEAKAGE] * (x3 - x4)
     dx2 = (a1 * x3 - a2 * x4 - m * ap[GRAVITY] - ap[DAMPING] * x2) / m

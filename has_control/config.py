@@ -169,6 +169,17 @@ def read_parameter_file(path: str | Path) -> dict[str, Any]:
     return flat
 
 
+def read_parameter_files(files: Iterable[str | Path]) -> tuple[dict[str, Any], dict[str, str]]:
+    """Flat parameters of several files, later ones winning, and the file each key came from."""
+    flat: dict[str, Any] = {}
+    sources: dict[str, str] = {}
+    for f in files:
+        for key, value in read_parameter_file(f).items():
+            flat[key] = value
+            sources[key] = str(f)
+    return flat, sources
+
+
 def _coerce(key: str, value: Any, kind: Any, source: str) -> Any:
     def bad(why: str) -> ConfigError:
         return ConfigError(f"{source}: {key} = {value!r}: {why}")
@@ -262,12 +273,7 @@ def default_config_files() -> list[Path]:
 def load_config(paths: Iterable[str | Path] = (), defaults: bool = True) -> Config:
     """Config from the shipped files (if ``defaults``) overridden by ``paths`` in order."""
     files = (default_config_files() if defaults else []) + [Path(p) for p in paths]
-    flat: dict[str, Any] = {}
-    sources: dict[str, str] = {}
-    for f in files:
-        for key, value in read_parameter_file(f).items():
-            flat[key] = value
-            sources[key] = str(f)
+    flat, sources = read_parameter_files(files)
     return build_config(flat, sources=sources)
 
 

@@ -14,7 +14,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
-from .config import default_config_files, read_parameter_file
+from .config import default_config_files, read_parameter_files
 from .episode import evaluate
 from .errors import ConfigError
 from .params import Config
@@ -92,13 +92,7 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
 def load_tuning(paths: Iterable[str | Path] = (), defaults: bool = True) -> Tuning:
     """Tuning settings from config/tuner.yaml (if ``defaults``) and ``paths``."""
     files = ([TUNER_FILE] if defaults else []) + [Path(p) for p in paths]
-    flat: dict[str, Any] = {}
-    sources: dict[str, str] = {}
-    for f in files:
-        for k, v in read_parameter_file(f).items():
-            flat[k] = v
-            sources[k] = str(f)
-    return tuning_from_parameters(flat, sources)
+    return tuning_from_parameters(*read_parameter_files(files))
 
 
 @dataclass
