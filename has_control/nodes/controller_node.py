@@ -1,0 +1,120 @@
+"""The controller node: the adaptive back-stepping law on every state it receives.
+
+Calls :func:`has_control.abc_controller.abc_law` and ``adapt`` (the one
+implementation) with the sample time taken from the state's stamp, and
+publishes the valve command stamped like the state it answers.
+
+Parameters: ``gains.k1..k3`` [1/s] (> 0), ``adaptation.*``, ``reference.*``,
+the model ``actuator.*`` and ``simulation.step``. A parameter set that the
+core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
+and the old values stay; accepted changes apply from the next sample.
+
+Topics: ``state`` (in), ``command`` (out), ``~/controller_state``
+(std_msgs/Float64MultiArray: e1 [m], e2 [m/s], e3 [N], â1, â2, x1d [m]),
+``~/reference`` (std_msgs/Float64MultiArray: x1d, ẋ1d, ẍ1d, x1d⁽³⁾).
+Service ``~/reset`` (std_srvs/Trigger): estimates back to â(0).
+"""
+from __future__ import annotations
+
+import rclpy
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from ..abc_controller import abc_law, adapt
+from ..errors import ConfigError
+from ..episode import EpisodeArrays
+from ..reference import reference
+from .messages import CONTROL_QOS, command_message, sample_of, state_of
+from .parameters import config_from_node, declare_config
+
+PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.")
+
+
+class ControllerNode(Node):
+    def __init__(self, name: str = "controller", **kwargs):
+        super().__init__(name, **kwargs)
+        declare_config(self, PREFIXES)
+        self.declare_parameter("publish_internals", True)
+        self._apply(config_from_node(self, PREFIXES))
+        self._pending = None
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.command_pub = self.create_publisher(JointState, "command", CONTROL_QOS)
+        self.internals_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
+        self.reference_pub = self.create_publisher(Float64MultiArray, "~/reference", 10)
+        self.create_subscription(JointState, "state", self._on_state, CONTROL_QOS)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.publish_internals = bool(self.get_parameter("publish_internals").value)
+        self.log: list[tuple] | None = None
+        self.reset()
+
+    def _apply(self, cfg) -> None:
+        self.cfg = cfg
+        arr = EpisodeArrays.from_config(cfg)
+        self.ap, self.cp, self.rp = arr.actuator, arr.adaptation, arr.reference
+        self.k = cfg.gains.as_tuple()
+        self.dt = cfg.episode.step
+        self.step_ns = int(round(self.dt * 1e9))
+
+    def reset(self) -> None:
+        """Estimates back to â(0); the next sample starts a new run."""
+        self.a1_hat, self.a2_hat = self.cfg.adaptation.initial
+        self.x3d_prev = 0.0
+        self.has_prev = False
+
+    # --- parameters --------------------------------------------------------
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        changes = {p.name: p.value for p in params if p.name.startswith(PREFIXES)}
+        if not changes:
+            return SetParametersResult(successful=True)
+        try:
+            cfg = config_from_node(self, PREFIXES, overrides=changes)
+        except ConfigError as exc:
+            reason = str(exc)
+            self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
+            return SetParametersResult(successful=False, reason=reason)
+        self._pending = cfg                      # applies from the next sample
+        return SetParametersResult(successful=True)
+
+    # --- control loop ------------------------------------------------------
+    def _on_state(self, msg: JointState) -> None:
+        if self._pending is not None:
+            self._apply(self._pending)
+            self._pending = None
+        i = sample_of(msg.header.stamp, self.step_ns)
+        t = i * self.dt
+        x1, x2, p1, p2 = state_of(msg)
+        r0, r1, r2, r3 = reference(self.rp, t)
+        k1, k2, k3 = self.k
+        u, e1, e2, e3, rate1, rate2, x3d = abc_law(
+            x1, x2, p1, p2, self.a1_hat, self.a2_hat, self.x3d_prev, self.has_prev,
+            r0, r1, r2, r3, k1, k2, k3, self.ap, self.cp, self.dt)
+        self.command_pub.publish(command_message(msg, u))
+        if self.log is not None:
+            self.log.append((t, r0, x1, x2, p1, p2, u, e1, e2, e3, self.a1_hat, self.a2_hat))
+        if self.publish_internals:
+            self.internals_pub.publish(Float64MultiArray(data=[e1, e2, e3, self.a1_hat, self.a2_hat, r0]))
+            self.reference_pub.publish(Float64MultiArray(data=[r0, r1, r2, r3]))
+        self.a1_hat, self.a2_hat = adapt(self.a1_hat, self.a2_hat, rate1, rate2, self.cp, self.dt)
+        self.x3d_prev = x3d
+        self.has_prev = True
+
+    def _on_reset(self, request, response):
+        self.reset()
+        response.success = True
+        response.message = "estimates reset to adaptation.initial"
+        return response
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = ControllerNode()
+    try:
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
