@@ -23,6 +23,8 @@ setup(
     entry_points={
         "console_scripts": [
             "has-control = has_control.cli:main",
+            "plant = has_control.nodes.plant_node:main",
+            "controller = has_control.nodes.controller_node:main",
         ],
     },
 )

@@ -136,6 +136,31 @@ def cmd_tune(args) -> int:
     return 0
 
 
+def cmd_stack(args) -> int:
+    from .nodes.stack import run_stack
+    cfg = _load(args)
+    gains = _gains_arg(args.gains) if args.gains else None
+    run = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True)
+    s = run.score
+    if args.json:
+        print(json.dumps(s.as_json()))
+    else:
+        k = gains or cfg.gains.as_tuple()
+        print(f"stack (plant + controller, lock-step, one process): k = ({k[0]:g}, {k[1]:g}, {k[2]:g}), "
+              f"{s.samples} samples in {run.seconds:.2f} s ({s.samples / run.seconds:,.0f} samples/s)"
+              f"{'; fail-safe events: ' + str(run.failsafe_events) if run.failsafe_events else ''}")
+        print(f"J = {s.J:.6e}   e_max = {s.e_max:.4e} m, e_mu = {s.e_mu:.4e} m, e_sigma = {s.e_sigma:.4e} m")
+    return 0
+
+
+def cmd_node(args) -> int:
+    """Run one node as this process (for machines without the ros2 command)."""
+    from importlib import import_module
+    module = {"plant": "plant_node", "controller": "controller_node"}[args.command]
+    import_module(f"has_control.nodes.{module}").main(args=[sys.argv[0], *args.ros_args])
+    return 0
+
+
 def _positive_int(text: str) -> int:
     try:
         v = int(text)
@@ -180,6 +205,19 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", metavar="DIR", help="write tune.json, convergence.png, gains.png")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.set_defaults(func=cmd_tune)
+
+    st = sub.add_parser("stack", help="run plant and controller nodes in one process, lock-step")
+    st.add_argument("--duration", type=float, metavar="S", help="horizon [s] (default: config, 10 s)")
+    st.add_argument("--gains", nargs=3, metavar=("K1", "K2", "K3"), help="gains [1/s] (default: config)")
+    st.add_argument("--namespace", metavar="NS", help="ROS namespace of both nodes, e.g. /sim0")
+    st.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
+    st.add_argument("--json", action="store_true", help="print the keys of simulate --json")
+    st.set_defaults(func=cmd_stack)
+
+    for name in ("plant", "controller"):
+        nd = sub.add_parser(name, help=f"run the {name} node (arguments after it go to ROS, e.g. --ros-args ...)")
+        nd.add_argument("ros_args", nargs=argparse.REMAINDER)
+        nd.set_defaults(func=cmd_node)
     return p
 
 

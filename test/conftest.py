@@ -3,3 +3,19 @@ from pathlib import Path
 
 # test helpers (reference_impl) import as plain modules
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import os
+
+import pytest
+
+# Nodes started by tests discover only this machine, so parallel runs never cross-talk.
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+_domain = [100 + os.getpid() % 60]
+
+
+@pytest.fixture
+def domain_id():
+    """A ROS domain of its own for each test that starts nodes (ids 100..229)."""
+    _domain[0] = 100 + (_domain[0] - 99) % 130
+    return _domain[0]

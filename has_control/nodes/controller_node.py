@@ -40,6 +40,8 @@ class ControllerNode(Node):
         self.declare_parameter("publish_internals", True)
         self._apply(config_from_node(self, PREFIXES))
         self._pending = None
+        self.reset()
+        self._warm_up()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.command_pub = self.create_publisher(JointState, "command", CONTROL_QOS)
         self.internals_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
@@ -48,7 +50,6 @@ class ControllerNode(Node):
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.publish_internals = bool(self.get_parameter("publish_internals").value)
         self.log: list[tuple] | None = None
-        self.reset()
 
     def _apply(self, cfg) -> None:
         self.cfg = cfg
@@ -63,6 +64,14 @@ class ControllerNode(Node):
         self.a1_hat, self.a2_hat = self.cfg.adaptation.initial
         self.x3d_prev = 0.0
         self.has_prev = False
+
+    def _warm_up(self) -> None:
+        """Compile (or load) the control law before joining the graph."""
+        x = self.cfg.actuator.initial_state()
+        r = reference(self.rp, 0.0)
+        out = abc_law(x[0], x[1], x[2], x[3], self.a1_hat, self.a2_hat, 0.0, False, *r,
+                      *self.k, self.ap, self.cp, self.dt)
+        adapt(self.a1_hat, self.a2_hat, out[4], out[5], self.cp, self.dt)
 
     # --- parameters --------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:

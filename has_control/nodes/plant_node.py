@@ -47,9 +47,12 @@ class PlantNode(Node):
         self.mode = self.get_parameter("mode").value
         if self.mode != "lockstep":
             raise ValueError(f"parameter mode = {self.mode!r}: only 'lockstep' is implemented")
+        x0 = self.actuator.initial_state()
+        plant_step(x0[0], x0[1], x0[2], x0[3], 0.0, self.ap, self.step)   # compile before joining the graph
         self.state_pub = self.create_publisher(JointState, "state", CONTROL_QOS)
         self.clock_pub = self.create_publisher(Clock, "/clock", 10)
-        self.create_subscription(JointState, "command", self._on_command, CONTROL_QOS)
+        sub = self.create_subscription(JointState, "command", self._on_command, CONTROL_QOS)
+        self._command_topic = sub.topic_name
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.failsafe_events = 0
         self._in_outage = False
@@ -69,6 +72,11 @@ class PlantNode(Node):
     def start(self) -> None:
         """Publish state 0 (or re-publish the current one)."""
         self._publish()
+
+    def connected(self) -> bool:
+        """Both directions of the loop have a peer (a controller is listening and talking)."""
+        return bool(self.state_pub.get_subscription_count()
+                    and self.count_publishers(self._command_topic))
 
     def _publish(self) -> None:
         self.clock_pub.publish(Clock(clock=stamp(self.sample, self.step_ns)))
@@ -122,10 +130,17 @@ class PlantNode(Node):
 def main(args=None):
     rclpy.init(args=args)
     node = PlantNode()
-    node.start()
     try:
+        while rclpy.ok() and not node.connected():
+            rclpy.spin_once(node, timeout_sec=0.05)
+        node.get_logger().info("controller connected: starting the run")
+        node.start()
         while rclpy.ok() and not node.finished:
             rclpy.spin_once(node, timeout_sec=0.1)
+        if node.finished:
+            node.get_logger().info(
+                f"finished {node.sample} samples at t = {node.sample * node.step:.4f} s: "
+                f"y = {node.x[0]:.9e} m, fail-safe events = {node.failsafe_events}")
     except KeyboardInterrupt:
         pass
     finally:

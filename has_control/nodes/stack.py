@@ -36,7 +36,8 @@ def _overrides(cfg: Config) -> list[Parameter]:
 
 def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
               publish_internals: bool = False, args: list[str] | None = None,
-              context: rclpy.Context | None = None, timeout: float = 600.0) -> StackRun:
+              context: rclpy.Context | None = None, timeout: float = 600.0,
+              domain_id: int | None = None) -> StackRun:
     """Run one lock-step episode through plant and controller nodes in this process."""
     from ..config import build_config
     cfg = cfg or Config()
@@ -46,7 +47,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     own = context is None
     if own:
         context = rclpy.Context()
-        rclpy.init(args=args, context=context)
+        rclpy.init(args=args, context=context, domain_id=domain_id)
     try:
         params = _overrides(cfg)
         n = cfg.episode.samples

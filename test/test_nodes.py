@@ -1,0 +1,94 @@
+"""The node graph: same trace as the library, parameters, namespaces, fail-safe."""
+import math
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.experimental import EventsExecutor
+from rclpy.parameter import Parameter
+
+from has_control.episode import simulate, with_horizon
+from has_control.nodes.controller_node import ControllerNode
+from has_control.nodes.plant_node import PlantNode
+from has_control.nodes.stack import run_stack
+from has_control.params import Config
+
+
+@pytest.fixture
+def context(domain_id):
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def test_graph_run_equals_the_in_process_trace(context):
+    cfg = with_horizon(Config(), 1.5)
+    run = run_stack(cfg, context=context)
+    ref = simulate(cfg)
+    assert run.trace.shape == ref.data.shape == (5000, 12)
+    np.testing.assert_allclose(run.trace, ref.data, rtol=1e-12, atol=0)
+    assert run.score == ref.score and run.failsafe_events == 0
+
+
+def test_namespaced_stack_with_other_gains(context):
+    cfg = with_horizon(Config(), 1.5)
+    run = run_stack(cfg, gains=(404.0, 401.0, 407.0), namespace="/sim3", context=context)
+    assert run.score == simulate(cfg, (404.0, 401.0, 407.0)).score
+
+
+def test_diverging_gains_score_inf_through_the_graph(context):
+    run = run_stack(with_horizon(Config(), 1.5), gains=(1e4, 1e4, 1e4), context=context)
+    assert run.score.diverged and math.isinf(run.score.J)
+
+
+@pytest.mark.parametrize("value", [-1.0, math.nan, 0.0])
+def test_invalid_gains_are_rejected_and_the_old_ones_kept(context, value):
+    node = ControllerNode(context=context)
+    try:
+        res = node.set_parameters_atomically([Parameter("gains.k1", value=value),
+                                              Parameter("gains.k2", value=500.0)])
+        assert not res.successful and "gains.k1" in res.reason
+        assert node.get_parameter("gains.k1").value == 150.0
+        assert node.get_parameter("gains.k2").value == 158.0
+        assert node.k == (150.0, 158.0, 162.0)
+        ok = node.set_parameters_atomically([Parameter("gains.k1", value=300.0)])
+        assert ok.successful
+        node._on_state(_state_msg())            # new gains apply from the next sample
+        assert node.k == (300.0, 158.0, 162.0)
+        bad = node.set_parameters([Parameter("adaptation.lower", value=[3500.0, 4e-12])])
+        assert not bad[0].successful and "adaptation.lower" in bad[0].reason
+    finally:
+        node.destroy_node()
+
+
+def _state_msg():
+    from has_control.nodes.messages import state_message
+    cfg = Config()
+    return state_message(0, 300_000, cfg.actuator.initial_state(), cfg.actuator)
+
+
+def test_plant_fail_safe_centres_the_valve_and_recovers(context):
+    ex = EventsExecutor(context=context)
+    plant = PlantNode(context=context, parameter_overrides=[Parameter("command_timeout", value=0.02)])
+    ex.add_node(plant)
+    plant.log = []
+    plant.start()
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        ex.spin_once(timeout_sec=0.01)
+    stalled = plant.failsafe_events
+    assert stalled >= 5 and plant.sample == stalled
+    assert all(row[-1] == 0.0 for row in plant.log)       # u = 0 while no controller
+    controller = ControllerNode(context=context)             # the controller comes back
+    ex.add_node(controller)
+    before = plant.sample
+    end = time.monotonic() + 3.0
+    while time.monotonic() < end and plant.sample < before + 200:
+        ex.spin_once(timeout_sec=0.01)
+    assert plant.sample >= before + 200 and not plant._in_outage
+    assert any(row[-1] != 0.0 for row in plant.log[before:])
+    ex.shutdown()
+    plant.destroy_node()
+    controller.destroy_node()
