@@ -153,11 +153,14 @@ def cmd_stack(args) -> int:
     return 0
 
 
-def cmd_node(args) -> int:
-    """Run one node as this process (for machines without the ros2 command)."""
+NODES = {"plant": "plant_node", "controller": "controller_node"}
+
+
+def run_node(name: str, ros_args: list[str]) -> int:
+    """Run one node as this process (for machines without the ros2 command);
+    everything after the node's name goes to ROS (``--ros-args -p k:=v ...``)."""
     from importlib import import_module
-    module = {"plant": "plant_node", "controller": "controller_node"}[args.command]
-    import_module(f"has_control.nodes.{module}").main(args=[sys.argv[0], *args.ros_args])
+    import_module(f"has_control.nodes.{NODES[name]}").main(args=[f"has-control {name}", *ros_args])
     return 0
 
 
@@ -214,14 +217,15 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--json", action="store_true", help="print the keys of simulate --json")
     st.set_defaults(func=cmd_stack)
 
-    for name in ("plant", "controller"):
-        nd = sub.add_parser(name, help=f"run the {name} node (arguments after it go to ROS, e.g. --ros-args ...)")
-        nd.add_argument("ros_args", nargs=argparse.REMAINDER)
-        nd.set_defaults(func=cmd_node)
+    for name in NODES:
+        sub.add_parser(name, help=f"run the {name} node; what follows goes to ROS (--ros-args -p k:=v ...)")
     return p
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in NODES:
+        return run_node(argv[0], argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     try:

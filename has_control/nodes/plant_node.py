@@ -55,6 +55,7 @@ class PlantNode(Node):
         self._command_topic = sub.topic_name
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.failsafe_events = 0
+        self.started_at = self.run_seconds = 0.0
         self._in_outage = False
         self.finished = False
         self.log: list[tuple[int, float, float, float, float, float]] | None = None
@@ -71,6 +72,7 @@ class PlantNode(Node):
 
     def start(self) -> None:
         """Publish state 0 (or re-publish the current one)."""
+        self.started_at = time.perf_counter()
         self._publish()
 
     def connected(self) -> bool:
@@ -92,6 +94,7 @@ class PlantNode(Node):
         self.sample += 1
         if self.samples and self.sample >= self.samples:
             self.finished = True
+            self.run_seconds = time.perf_counter() - self.started_at
             return
         if not np.all(np.isfinite(self.x)) or abs(y) > self.y_limit:
             self.get_logger().error(f"diverged at sample {self.sample}: y = {y:.4g} m")
@@ -140,7 +143,8 @@ def main(args=None):
         if node.finished:
             node.get_logger().info(
                 f"finished {node.sample} samples at t = {node.sample * node.step:.4f} s: "
-                f"y = {node.x[0]:.9e} m, fail-safe events = {node.failsafe_events}")
+                f"y = {node.x[0]:.9e} m, fail-safe events = {node.failsafe_events}, "
+                f"{node.sample / node.run_seconds:.0f} samples/s")
     except KeyboardInterrupt:
         pass
     finally:
