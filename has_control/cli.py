@@ -136,6 +136,19 @@ def cmd_tune(args) -> int:
     return 0
 
 
+def cmd_reproduce(args) -> int:
+    from .reproduce import run_experiment, write_report
+    cfg = _load(args)
+    tuning = _tuning_args(args)
+
+    def progress(msg: str) -> None:
+        print(f"  {msg}", file=sys.stderr, flush=True)
+    rows = run_experiment(args.seeds, tuning, cfg, progress=progress)
+    report = write_report(rows, Path(args.out), cfg)
+    print(f"wrote {report} (tables.json and figures beside it)")
+    return 0
+
+
 def cmd_stack(args) -> int:
     from .nodes.stack import run_stack
     cfg = _load(args)
@@ -208,6 +221,14 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", metavar="DIR", help="write tune.json, convergence.png, gains.png")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.set_defaults(func=cmd_tune)
+
+    rp = sub.add_parser("reproduce", help="the paper's experiment over seeds, as a report")
+    rp.add_argument("--seeds", type=_positive_int, default=10, metavar="N", help="seeds 1..N (default 10)")
+    rp.add_argument("--out", default="out/reproduce", metavar="DIR", help="report directory")
+    rp.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
+    rp.add_argument("--particles", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
+    rp.add_argument("--iterations", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
+    rp.set_defaults(func=cmd_reproduce, duration=None, variant=None, seed=None)
 
     st = sub.add_parser("stack", help="run plant and controller nodes in one process, lock-step")
     st.add_argument("--duration", type=float, metavar="S", help="horizon [s] (default: config, 10 s)")

@@ -68,3 +68,21 @@ def _save(fig, path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_convergence_spread(groups, path: str | Path) -> Path:
+    """Best J per iteration: mean over seeds with the min-max band, one colour per variant."""
+    import numpy as np
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for label, results in groups:
+        n = min(len(r.history) for r in results)
+        j = np.array([[h.best_cost for h in r.history[:n]] for r in results])
+        line, = ax.plot(j.mean(0), lw=1.3, label=f"{label} (mean of {len(results)})")
+        ax.fill_between(range(n), j.min(0), j.max(0), color=line.get_color(), alpha=0.15)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("best J")
+    ax.set_title("Convergence of J over seeds (paper Fig. 6)")
+    ax.ticklabel_format(axis="y", style="sci", scilimits=(0, 0))
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return _save(fig, path)

@@ -69,3 +69,22 @@ def test_tune_cli_rejects_bad_numbers_in_one_line():
                        capture_output=True, text=True)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert "--particles" in r.stderr
+
+
+def test_reproduce_writes_every_table_and_figure(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "reproduce", "--seeds", "2",
+                        "--particles", "6", "--iterations", "3", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    report = (tmp_path / "report.md").read_text()
+    for heading in ("## Table 2", "## Table 3", "## Convergence", "## Figures", "## Where we agree"):
+        assert heading in report
+    assert "N = 6 particles, up to 3 iterations" in report
+    tables = json.loads((tmp_path / "tables.json").read_text())
+    assert set(tables["table2"]) == {"pso", "pso-cp", "pso-cp-tvac", "pso-cp, symmetric redraw",
+                                     "pso-cp, rho_c = w_min*exp(-w/w_max)"}
+    assert len(tables["table2"]["pso"]["J_per_seed"]) == 2
+    assert tables["table3"]["manual"]["e_max"] == pytest.approx(7.957231729566194e-05, rel=1e-12)
+    for fig in ("fig6_convergence.png", "fig3-5_gains_pso.png", "fig3-5_gains_pso-cp.png",
+                "fig3-5_gains_pso-cp-tvac.png", "fig7-8_tracking.png"):
+        assert (tmp_path / fig).read_bytes()[:4] == b"\x89PNG"
