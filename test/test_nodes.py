@@ -92,3 +92,26 @@ def test_plant_fail_safe_centres_the_valve_and_recovers(context):
     ex.shutdown()
     plant.destroy_node()
     controller.destroy_node()
+
+
+def test_reset_services_restore_the_initial_state(context):
+    from std_srvs.srv import Trigger
+    ex = EventsExecutor(context=context)
+    plant = PlantNode(context=context)
+    controller = ControllerNode(context=context)
+    client_node = rclpy.create_node("resetter", context=context)
+    for n in (plant, controller, client_node):
+        ex.add_node(n)
+    plant.x[0] = 0.05
+    plant.sample = 42
+    controller.a1_hat = 2900.0
+    for name in ("/plant/reset", "/controller/reset"):
+        cli = client_node.create_client(Trigger, name)
+        assert cli.wait_for_service(timeout_sec=5.0)
+        fut = cli.call_async(Trigger.Request())
+        ex.spin_until_future_complete(fut, timeout_sec=5.0)
+        assert fut.result().success
+    assert plant.sample == 0 and plant.x[0] == 0.0 and controller.a1_hat == 2600.0
+    ex.shutdown()
+    for n in (plant, controller, client_node):
+        n.destroy_node()

@@ -21,13 +21,12 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
-from std_srvs.srv import Trigger
 
 from ..abc_controller import abc_law, adapt
 from ..errors import ConfigError
 from ..episode import EpisodeArrays
 from ..reference import reference
-from .messages import CONTROL_QOS, command_message, sample_of, state_of
+from .messages import CONTROL_QOS, command_message, reset_service, sample_of, state_of
 from .parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.")
@@ -47,7 +46,7 @@ class ControllerNode(Node):
         self.internals_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
         self.reference_pub = self.create_publisher(Float64MultiArray, "~/reference", 10)
         self.create_subscription(JointState, "state", self._on_state, CONTROL_QOS)
-        self.create_service(Trigger, "~/reset", self._on_reset)
+        reset_service(self, self.reset, "estimates reset to adaptation.initial")
         self.publish_internals = bool(self.get_parameter("publish_internals").value)
         self.log: list[tuple] | None = None
 
@@ -109,12 +108,6 @@ class ControllerNode(Node):
         self.a1_hat, self.a2_hat = adapt(self.a1_hat, self.a2_hat, rate1, rate2, self.cp, self.dt)
         self.x3d_prev = x3d
         self.has_prev = True
-
-    def _on_reset(self, request, response):
-        self.reset()
-        response.success = True
-        response.message = "estimates reset to adaptation.initial"
-        return response
 
 
 def main(args=None):

@@ -65,3 +65,15 @@ def command_message(answers: JointState, u: float) -> JointState:
     msg.name = COMMAND_NAMES
     msg.position = [float(u)]
     return msg
+
+
+def reset_service(node, action, message: str):
+    """``~/reset`` (std_srvs/Trigger) that calls ``action()`` and answers ``message``."""
+    from std_srvs.srv import Trigger
+
+    def on_reset(request, response):
+        action()
+        response.success = True
+        response.message = message
+        return response
+    return node.create_service(Trigger, "~/reset", on_reset)

@@ -20,10 +20,9 @@ import rclpy
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from std_srvs.srv import Trigger
 
 from ..actuator import plant_step
-from .messages import CONTROL_QOS, sample_of, stamp, state_message
+from .messages import CONTROL_QOS, reset_service, sample_of, stamp, state_message
 from .parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.")
@@ -53,7 +52,7 @@ class PlantNode(Node):
         self.clock_pub = self.create_publisher(Clock, "/clock", 10)
         sub = self.create_subscription(JointState, "command", self._on_command, CONTROL_QOS)
         self._command_topic = sub.topic_name
-        self.create_service(Trigger, "~/reset", self._on_reset)
+        reset_service(self, self._reset_state, "plant reset to the initial state, sample 0")
         self.failsafe_events = 0
         self.started_at = self.run_seconds = 0.0
         self._in_outage = False
@@ -122,12 +121,6 @@ class PlantNode(Node):
                     "valve centred (u = 0) until commands return")
                 self._in_outage = True
             self._advance(0.0)
-
-    def _on_reset(self, request, response):
-        self._reset_state()
-        response.success = True
-        response.message = "plant reset to the initial state, sample 0"
-        return response
 
 
 def main(args=None):
