@@ -144,7 +144,7 @@ def cmd_reproduce(args) -> int:
     def progress(msg: str) -> None:
         print(f"  {msg}", file=sys.stderr, flush=True)
     rows = run_experiment(args.seeds, tuning, cfg, progress=progress)
-    report = write_report(rows, Path(args.out), cfg)
+    report = write_report(rows, Path(args.out), cfg, tuning.upper)
     print(f"wrote {report} (tables.json and figures beside it)")
     return 0
 
