@@ -8,7 +8,7 @@ gain sets in parallel over all cores, deterministically.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import numba
@@ -132,12 +132,9 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
                 gains[p, 0], gains[p, 1], gains[p, 2], ap, cp, dt)
             s[_J, q] += cost_increment(e1, u, ep)
             if in_window:
-                # metric_update with the block's shared count
-                x = abs(e1)
-                d = x - s[_MEAN, q]
-                s[_MEAN, q] += d / count
-                s[_M2, q] += d * (x - s[_MEAN, q])
-                s[_PEAK, q] = max(s[_PEAK, q], x)
+                # the block counts window samples once for all lanes
+                _, s[_MEAN, q], s[_M2, q], s[_PEAK, q] = metric_update(
+                    count - 1.0, s[_MEAN, q], s[_M2, q], s[_PEAK, q], e1)
             s[_A1, q], s[_A2, q] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
             s[_X3D, q] = x3d
             y, v, p1, p2 = plant_step(x1, x2, x3, x4, u, ap, dt)
@@ -258,4 +255,4 @@ def _as_gains(g) -> Gains:
     return Gains(k1, k2, k3)
 
 
-__all__ = ["TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "with_horizon", "replace"]
+__all__ = ["TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "with_horizon"]

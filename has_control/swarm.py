@@ -17,7 +17,7 @@ and restore a swarm exactly.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -322,4 +322,4 @@ def _record_from(d: dict) -> IterationRecord:
                            np.array(_unfloats(d["costs"])))
 
 
-__all__ = ["Swarm", "SwarmSettings", "SwarmResult", "SwarmError", "minimize", "VARIANTS", "replace"]
+__all__ = ["Swarm", "SwarmSettings", "SwarmResult", "SwarmError", "minimize", "VARIANTS"]
