@@ -37,15 +37,12 @@ def valve_drops(p1, p2, opening, ap):
     """Pressure drops [Pa] across the two metering edges, floored at 0.
 
     opening (u ≥ 0): (Ps − P1, P2 − Pr); otherwise (P1 − Pr, Ps − P2).
-    The choice is written as s·a + (1 − s)·b with s ∈ {0, 1}, exact for
-    finite values, so compiled loops over candidates stay branch-free.
     """
     ps = ap[P_SUPPLY]
     pr = ap[P_RETURN]
-    s = 1.0 if opening else 0.0
-    d1 = s * (ps - p1) + (1.0 - s) * (p1 - pr)
-    d2 = s * (p2 - pr) + (1.0 - s) * (ps - p2)
-    return max(d1, 0.0), max(d2, 0.0)
+    if opening:
+        return max(ps - p1, 0.0), max(p2 - pr, 0.0)
+    return max(p1 - pr, 0.0), max(ps - p2, 0.0)
 
 
 @njit(**_JIT)

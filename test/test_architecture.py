@@ -14,3 +14,26 @@ def test_core_modules_import_no_ros():
             + "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def test_editing_a_callee_module_recompiles_the_kernels(tmp_path):
+    """numba alone would keep episode's cached kernel after actuator.py changes."""
+    import shutil
+    from pathlib import Path
+
+    import has_control
+    pkg = tmp_path / "has_control"
+    shutil.copytree(Path(has_control.__file__).parent, pkg,
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    code = ("import has_control.episode as e; e.simulate(e.with_horizon(e.Config(), 1.5));"
+            "print(e._episode._cache._cache_path)")
+    env = {"PYTHONPATH": str(tmp_path), "PATH": "/usr/bin:/bin"}
+
+    def cache_path():
+        return subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env,
+                              capture_output=True, text=True, check=True).stdout.strip()
+    first = cache_path()
+    assert first == cache_path()                       # unchanged sources: the cache is reused
+    with open(pkg / "actuator.py", "a") as f:
+        f.write("\n# an edit to the physics\n")
+    assert cache_path() != first
