@@ -12,23 +12,11 @@ import time
 from pathlib import Path
 
 from .episode import simulate
-from .params import MANUAL_GAINS, PAPER_TUNED_GAINS, Config
+from .params import MANUAL_GAINS, PAPER_TABLE3, PAPER_TUNED_GAINS, Config
 from .tuning import load_tuning, tune
 
-PAPER_TABLE3 = {
-    "PSO+CP+TVAC-ABC (paper)": (6.1469e-6, 3.6703e-6, 1.7773e-6),
-    "ABC manual (paper)": (6.7797e-5, 3.6823e-5, 1.9221e-5),
-}
-
-
-def table3_rows(cfg: Config, tuned) -> list[tuple[str, tuple, float, tuple]]:
-    rows = []
-    for label, gains in (("ABC manual", MANUAL_GAINS.as_tuple()),
-                         ("ABC, paper's tuned gains", PAPER_TUNED_GAINS.as_tuple()),
-                         ("ABC, our PSO+CP+TVAC gains", tuned)):
-        s = simulate(cfg, gains).score
-        rows.append((label, gains, s.J, (s.e_max, s.e_mu, s.e_sigma)))
-    return rows
+PAPER_ROWS = (("PSO+CP+TVAC-ABC (paper)", PAPER_TABLE3["tuned"]),
+              ("ABC manual (paper)", PAPER_TABLE3["manual"]))
 
 
 def main(argv=None) -> int:
@@ -59,13 +47,18 @@ def main(argv=None) -> int:
     print("Table 3, steady state 0.5 s .. 9.5 s, statistics of |e1|:")
     print(f"  {'controller':<30} {'k1':>8} {'k2':>8} {'k3':>8} {'J':>11} {'e_max [m]':>11} "
           f"{'e_mu [m]':>11} {'e_sigma [m]':>11}")
-    rows = table3_rows(cfg, k)
-    for label, g, j, (a, b, c) in rows:
-        print(f"  {label:<30} {g[0]:8.2f} {g[1]:8.2f} {g[2]:8.2f} {j:11.4e} {a:11.4e} {b:11.4e} {c:11.4e}")
-    for label, (a, b, c) in PAPER_TABLE3.items():
+    traces = {}
+    for label, g in (("ABC manual", MANUAL_GAINS.as_tuple()),
+                     ("ABC, paper's tuned gains", PAPER_TUNED_GAINS.as_tuple()),
+                     ("ABC, our PSO+CP+TVAC gains", k)):
+        traces[label] = tr = simulate(cfg, g)
+        s = tr.score
+        print(f"  {label:<30} {g[0]:8.2f} {g[1]:8.2f} {g[2]:8.2f} {s.J:11.4e} {s.e_max:11.4e} "
+              f"{s.e_mu:11.4e} {s.e_sigma:11.4e}")
+    for label, (a, b, c) in PAPER_ROWS:
         print(f"  {label:<30} {'':8} {'':8} {'':8} {'':>11} {a:11.4e} {b:11.4e} {c:11.4e}")
-    manual = simulate(cfg, MANUAL_GAINS)
-    tuned = simulate(cfg, k)
+    manual = traces["ABC manual"]
+    tuned = traces["ABC, our PSO+CP+TVAC gains"]
     figs = [plot_tracking([("manual (150, 158, 162)", manual),
                            (f"tuned ({k[0]:.0f}, {k[1]:.0f}, {k[2]:.0f})", tuned)],
                           out / "tracking.png"),

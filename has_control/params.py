@@ -196,3 +196,7 @@ class Config:
 #: The paper's hand-set gains and its PSO+CP+TVAC result (SPEC §8).
 MANUAL_GAINS = Gains(150.0, 158.0, 162.0)
 PAPER_TUNED_GAINS = Gains(656.11, 656.13, 656.14)
+
+#: The paper's Table 3: (e_max, e_μ, e_σ) [m] of |e1| over 0.5–9.5 s (SPEC §8).
+PAPER_TABLE3 = {"tuned": (6.1469e-6, 3.6703e-6, 1.7773e-6),
+                "manual": (6.7797e-5, 3.6823e-5, 1.9221e-5)}
