@@ -132,13 +132,9 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
                 gains[p, 0], gains[p, 1], gains[p, 2], ap, cp, dt)
             s[_J, q] += cost_increment(e1, u, ep)
             if in_window:
-                # cost.metric_update, written out with the block's shared count:
-                # calling it here (tuple into the state array) measured ~20 % slower
-                x = abs(e1)
-                d = x - s[_MEAN, q]
-                s[_MEAN, q] += d / count
-                s[_M2, q] += d * (x - s[_MEAN, q])
-                s[_PEAK, q] = max(s[_PEAK, q], x)
+                # the block counts window samples once, for all lanes
+                _, s[_MEAN, q], s[_M2, q], s[_PEAK, q] = metric_update(
+                    count - 1.0, s[_MEAN, q], s[_M2, q], s[_PEAK, q], e1)
             s[_A1, q], s[_A2, q] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
             s[_X3D, q] = x3d
             y, v, p1, p2 = plant_step(x1, x2, x3, x4, u, ap, dt)
