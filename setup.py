@@ -25,6 +25,7 @@ setup(
             "has-control = has_control.cli:main",
             "plant = has_control.nodes.plant_node:main",
             "controller = has_control.nodes.controller_node:main",
+            "tuner = has_control.nodes.tuner_node:main",
         ],
     },
 )

@@ -108,19 +108,39 @@ def _tuning_args(args):
 
 
 def cmd_tune(args) -> int:
+    from .episode import simulate
     from .tuning import tune
-    cfg = _load(args)
-    tuning = _tuning_args(args)
+    session = swarm = None
+    if args.resume:
+        from .session import resume
+        if args.out and Path(args.out) != Path(args.resume):
+            raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")
+        r = resume(args.resume)
+        cfg, tuning, swarm, session = r.cfg, r.tuning, r.swarm, r.session
+        args.out = args.resume
+        print(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}",
+              file=sys.stderr)
+    else:
+        cfg = _load(args)
+        tuning = _tuning_args(args)
+        if args.out:
+            from .session import Session
+            session = Session(args.out, tuning, cfg)
     progress = Progress(f"{tuning.swarm.variant} seed {tuning.seed}")
+
+    def each_iteration(sw) -> None:
+        progress(sw)
+        if session is not None:
+            session.record(sw)
     try:
-        res = tune(cfg, tuning, callback=progress)
+        res = tune(cfg, tuning, callback=each_iteration, swarm=swarm)
     finally:
         progress.close()
     out = res.as_json()
     if args.out:
         from .plots import plot_convergence, plot_gains
         d = Path(args.out)
-        d.mkdir(parents=True, exist_ok=True)
+        bag = session.finish(out, simulate(cfg, res.gains), cfg)
         (d / "tune.json").write_text(json.dumps(out, indent=1) + "\n")
         plot_convergence([(res.variant, res.result)], d / "convergence.png")
         plot_gains(res.result, d / "gains.png", f"{res.variant}, seed {res.seed}")
@@ -132,7 +152,7 @@ def cmd_tune(args) -> int:
               f"J = {res.result.fun:.6e} after {res.result.nit} iterations, "
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
         if args.out:
-            print(f"wrote {Path(args.out) / 'tune.json'}, convergence.png, gains.png")
+            print(f"wrote {Path(args.out) / 'tune.json'}, convergence.png, gains.png and the session bag {bag}")
     return 0
 
 
@@ -153,7 +173,10 @@ def cmd_stack(args) -> int:
     from .nodes.stack import run_stack
     cfg = _load(args)
     gains = _gains_arg(args.gains) if args.gains else None
-    run = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True)
+    if args.tune:
+        return _stack_tune(args, cfg)
+    record = _new_bag_path(args.record) if args.record else None
+    run = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True, record=record)
     s = run.score
     if args.json:
         print(json.dumps(s.as_json()))
@@ -163,10 +186,74 @@ def cmd_stack(args) -> int:
               f"{s.samples} samples in {run.seconds:.2f} s ({s.samples / run.seconds:,.0f} samples/s)"
               f"{'; fail-safe events: ' + str(run.failsafe_events) if run.failsafe_events else ''}")
         print(f"J = {s.J:.6e}   e_max = {s.e_max:.4e} m, e_mu = {s.e_mu:.4e} m, e_sigma = {s.e_sigma:.4e} m")
+        if run.bag:
+            print(f"recorded {run.bag}")
     return 0
 
 
-NODES = {"plant": "plant_node", "controller": "controller_node"}
+def _new_bag_path(text: str) -> Path:
+    p = Path(text)
+    if p.exists():
+        raise HasControlError(f"--record {text}: exists already; a bag is never overwritten")
+    return p
+
+
+def _stack_tune(args, cfg) -> int:
+    from .nodes.stack import run_tuning_stack
+    changes = {k: v for k, v in (("seed", args.seed), ("particles", args.particles),
+                                 ("iterations", args.iterations), ("variant", args.variant)) if v is not None}
+    out = run_tuning_stack(cfg, changes, config_files=args.config or [], evaluator=args.evaluator,
+                           namespaces=args.lanes, record=args.record, validate_best=True)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        k = out["gains"]
+        print(f"tuner ({out['variant']}, {out['evaluator']} evaluator, seed {out['seed']}): "
+              f"best k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), J = {out['J']:.6e} after "
+              f"{out['iterations']} iterations, {out['evaluations']} evaluations, {out['seconds']:.1f} s")
+        v = out.get("validation")
+        if v:
+            print(f"validated through the graph: J = {v['J']:.6e}, e_max = {v['e_max']:.4e} m"
+                  + (f", from {out['validation_bag']}" if out.get("validation_bag") else ""))
+        print(f"controller gains now ({', '.join(f'{g:.2f}' for g in out['controller_gains'])})")
+    return 0
+
+
+def cmd_score(args) -> int:
+    from .bag import score_bag
+    score, run = score_bag(args.bag, args.config or [])
+    if args.json:
+        print(json.dumps(score.as_json()))
+    else:
+        ep = run.cfg.episode
+        print(f"{args.bag}: {score.samples} samples of {ep.step * 1e3:g} ms{' (diverged)' if score.diverged else ''}")
+        print(f"J = {score.J:.6e}   over {ep.skip_start:g} s .. {ep.horizon - ep.skip_end:g} s: "
+              f"e_max = {score.e_max:.4e} m, e_mu = {score.e_mu:.4e} m, e_sigma = {score.e_sigma:.4e} m")
+    return 0
+
+
+def cmd_bag_info(args) -> int:
+    from .bag import describe, read_bag
+    print(describe(read_bag(args.bag)))
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from .nodes.replay import replay, replay_controller
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise HasControlError(f"--rate {args.rate:g}: must be a number > 0")
+    if args.controller:
+        r = replay_controller(args.bag, tolerance=args.tolerance)
+        print(f"{args.bag}: replayed {r.samples} states to a live controller: "
+              f"{r.mismatches} mismatches, max |du| = {r.max_abs_diff:.3e} m"
+              + (f" (first at sample {r.first_mismatch})" if r.mismatches else ""))
+        return 0 if r.mismatches == 0 else 1
+    n, secs = replay(args.bag, rate=args.rate, topics=args.topics)
+    print(f"{args.bag}: published {n} messages in {secs:.2f} s")
+    return 0
+
+
+NODES = {"plant": "plant_node", "controller": "controller_node", "tuner": "tuner_node"}
 
 
 def run_node(name: str, ros_args: list[str]) -> int:
@@ -218,7 +305,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--config", action="append", metavar="FILE",
                    help="ros__parameters YAML (episode and swarm.* keys; repeatable)")
     t.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
-    t.add_argument("--out", metavar="DIR", help="write tune.json, convergence.png, gains.png")
+    t.add_argument("--out", metavar="DIR",
+                   help="write the session bag DIR/session (resumable), tune.json, convergence.png, gains.png")
+    t.add_argument("--resume", metavar="DIR",
+                   help="continue the session in DIR from its last complete iteration (its settings apply)")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.set_defaults(func=cmd_tune)
 
@@ -236,7 +326,39 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--namespace", metavar="NS", help="ROS namespace of both nodes, e.g. /sim0")
     st.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
     st.add_argument("--json", action="store_true", help="print the keys of simulate --json")
+    st.add_argument("--record", metavar="DIR", help="record the run to a rosbag2 MCAP bag DIR")
+    st.add_argument("--tune", action="store_true",
+                    help="add the tuner node: tune the gains, set the best on the controller")
+    st.add_argument("--variant", choices=("pso", "pso-cp", "pso-cp-tvac"), help="with --tune")
+    st.add_argument("--seed", type=int, help="with --tune")
+    st.add_argument("--particles", type=_positive_int, metavar="N", help="with --tune")
+    st.add_argument("--iterations", type=_positive_int, metavar="N", help="with --tune")
+    st.add_argument("--evaluator", choices=("batch", "graph"), default="batch",
+                    help="with --tune: score candidates in-process (batch) or through the nodes (graph)")
+    st.add_argument("--lanes", nargs="+", metavar="NS", default=None,
+                    help="with --tune --evaluator graph: plant/controller pairs in these namespaces")
     st.set_defaults(func=cmd_stack)
+
+    sc = sub.add_parser("score", help="score a recorded run (J, e_max, e_mu, e_sigma) from its bag")
+    sc.add_argument("bag", metavar="BAG", help="bag directory or .mcap file")
+    sc.add_argument("--config", action="append", metavar="FILE",
+                    help="ros__parameters YAML overriding the parameters stored in the bag")
+    sc.add_argument("--json", action="store_true", help="print the keys of simulate --json")
+    sc.set_defaults(func=cmd_score)
+
+    bi = sub.add_parser("bag-info", help="topics, types, counts and duration of a bag")
+    bi.add_argument("bag", metavar="BAG")
+    bi.set_defaults(func=cmd_bag_info)
+
+    rp2 = sub.add_parser("replay", help="publish a bag with its timing, or replay it to a controller")
+    rp2.add_argument("bag", metavar="BAG")
+    rp2.add_argument("--rate", type=float, default=1.0, metavar="R", help="time scale (default 1.0)")
+    rp2.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
+    rp2.add_argument("--controller", action="store_true",
+                     help="feed the recorded states to a live controller and compare its commands")
+    rp2.add_argument("--tolerance", type=float, default=0.0, metavar="DU",
+                     help="with --controller: |du| [m] counted as a match (default 0: bit for bit)")
+    rp2.set_defaults(func=cmd_replay)
 
     for name in NODES:
         sub.add_parser(name, help=f"run the {name} node; what follows goes to ROS (--ros-args -p k:=v ...)")
@@ -253,6 +375,9 @@ def main(argv=None) -> int:
         return args.func(args)
     except HasControlError as exc:
         print(f"has-control: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:
+        print(f"has-control: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("has-control: interrupted", file=sys.stderr)

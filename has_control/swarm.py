@@ -231,8 +231,10 @@ class Swarm:
         self.x = np.clip(self.x + v, self.lower, self.upper)
 
     # --- checkpoint ---------------------------------------------------------
-    def state_dict(self) -> dict:
-        """Everything needed to resume exactly (JSON-serialisable)."""
+    def state_dict(self, history: bool = True) -> dict:
+        """Everything needed to resume exactly (JSON-serialisable); without
+        ``history`` the per-iteration records are left out (a session bag
+        stores them once each)."""
         return {
             "settings": asdict(self.settings), "lower": self.lower.tolist(),
             "upper": self.upper.tolist(), "seed": self.seed,
@@ -241,7 +243,7 @@ class Swarm:
             "gbest_x": self.gbest_x.tolist(), "gbest_f": _floats([self.gbest_f])[0],
             "iteration": self.iteration, "evaluations": self.evaluations,
             "nan_costs": self.nan_costs, "stop_reason": self.stop_reason,
-            "history": [_record_dict(h) for h in self.history],
+            "history": [record_dict(h) for h in self.history] if history else [],
         }
 
     @classmethod
@@ -258,7 +260,7 @@ class Swarm:
         sw.evaluations = int(state["evaluations"])
         sw.nan_costs = int(state["nan_costs"])
         sw.stop_reason = state["stop_reason"]
-        sw.history = [_record_from(h) for h in state.get("history", [])]
+        sw.history = [record_from(h) for h in state.get("history", [])]
         return sw
 
     def result(self) -> SwarmResult:
@@ -308,14 +310,15 @@ def _unfloats(values) -> list:
     return [float(v) for v in values]
 
 
-def _record_dict(h: IterationRecord) -> dict:
+def record_dict(h: IterationRecord) -> dict:
+    """An iteration record as JSON-serialisable data (inverse: :func:`record_from`)."""
     return {"iteration": h.iteration, "best_cost": _floats([h.best_cost])[0],
             "best_position": h.best_position.tolist(), "mean_cost": _floats([h.mean_cost])[0],
             "std_cost": _floats([h.std_cost])[0], "positions": h.positions.tolist(),
             "costs": _floats(h.costs)}
 
 
-def _record_from(d: dict) -> IterationRecord:
+def record_from(d: dict) -> IterationRecord:
     return IterationRecord(int(d["iteration"]), float(d["best_cost"]), np.array(d["best_position"]),
                            float(d["mean_cost"]), float(d["std_cost"]),
                            np.array(d["positions"], dtype=np.float64).reshape(-1, len(d["best_position"])),

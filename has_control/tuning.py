@@ -120,12 +120,21 @@ class TuneResult:
 
 def tune(cfg: Config | None = None, tuning: Tuning | None = None,
          callback: Callable[[Swarm], bool | None] | None = None,
-         swarm: Swarm | None = None) -> TuneResult:
-    """Run one tuning session on the batch evaluator (``swarm`` to resume one)."""
+         swarm: Swarm | None = None,
+         objective: Callable[[np.ndarray], np.ndarray] | None = None) -> TuneResult:
+    """Run one tuning session (``swarm`` to resume one).
+
+    ``objective`` maps the (N, 3) candidate gains to N costs J; by default
+    the in-process batch evaluator over ``cfg``. The tuner node passes one
+    that runs every candidate through the node graph.
+    """
     cfg = cfg or Config()
     tuning = tuning or Tuning()
     if swarm is None:
         swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
+    if objective is None:
+        def objective(k):
+            return evaluate(k, cfg)
     t0 = time.perf_counter()
-    result = minimize(lambda k: evaluate(k, cfg), None, swarm=swarm, callback=callback)
+    result = minimize(objective, None, swarm=swarm, callback=callback)
     return TuneResult(swarm.settings.variant, swarm.seed, result, time.perf_counter() - t0)

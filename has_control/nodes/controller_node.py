@@ -9,10 +9,14 @@ the model ``actuator.*`` and ``simulation.step``. A parameter set that the
 core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
 and the old values stay; accepted changes apply from the next sample.
 
-Topics: ``state`` (in), ``command`` (out), ``~/controller_state``
-(std_msgs/Float64MultiArray: e1 [m], e2 [m/s], e3 [N], â1, â2, x1d [m]),
-``~/reference`` (std_msgs/Float64MultiArray: x1d, ẋ1d, ẍ1d, x1d⁽³⁾).
-Service ``~/reset`` (std_srvs/Trigger): estimates back to â(0).
+Topics: ``state`` (in), ``command`` (out); std_msgs/Float64MultiArray, each
+leading with the sample's simulation time t [s] (the type has no header):
+``~/controller_state`` [t, e1 [m], e2 [m/s], e3 [N], â1, â2, x1d [m]],
+``~/reference`` [t, x1d [m], ẋ1d [m/s], ẍ1d [m/s²], x1d⁽³⁾ [m/s³]] (both when
+``publish_internals``), and ``~/gains`` [t, k1, k2, k3] [1/s] (transient
+local), published at the first sample of each run and whenever new gains
+take effect. Service ``~/reset`` (std_srvs/Trigger): estimates back to â(0),
+the next state starts a new run.
 """
 from __future__ import annotations
 
@@ -26,7 +30,7 @@ from ..abc_controller import abc_law, adapt
 from ..errors import ConfigError
 from ..episode import EpisodeArrays
 from ..reference import reference
-from .messages import CONTROL_QOS, command_message, reset_service, sample_of, state_of
+from .messages import CONTROL_QOS, LATCHED_QOS, command_message, sample_of, state_of, trigger_service
 from .parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.")
@@ -45,8 +49,9 @@ class ControllerNode(Node):
         self.command_pub = self.create_publisher(JointState, "command", CONTROL_QOS)
         self.internals_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
         self.reference_pub = self.create_publisher(Float64MultiArray, "~/reference", 10)
+        self.gains_pub = self.create_publisher(Float64MultiArray, "~/gains", LATCHED_QOS)
         self.create_subscription(JointState, "state", self._on_state, CONTROL_QOS)
-        reset_service(self, self.reset, "estimates reset to adaptation.initial")
+        trigger_service(self, "~/reset", self.reset, "estimates reset to adaptation.initial")
         self.publish_internals = bool(self.get_parameter("publish_internals").value)
         self.log: list[tuple] | None = None
 
@@ -63,6 +68,7 @@ class ControllerNode(Node):
         self.a1_hat, self.a2_hat = self.cfg.adaptation.initial
         self.x3d_prev = 0.0
         self.has_prev = False
+        self._announce = True                   # publish the gains in force at the next sample
 
     def _warm_up(self) -> None:
         """Compile (or load) the control law before joining the graph."""
@@ -91,8 +97,12 @@ class ControllerNode(Node):
         if self._pending is not None:
             self._apply(self._pending)
             self._pending = None
+            self._announce = True
         i = sample_of(msg.header.stamp, self.step_ns)
         t = i * self.dt
+        if self._announce:
+            self.gains_pub.publish(Float64MultiArray(data=[t, *self.k]))
+            self._announce = False
         x1, x2, p1, p2 = state_of(msg)
         r0, r1, r2, r3 = reference(self.rp, t)
         k1, k2, k3 = self.k
@@ -103,8 +113,8 @@ class ControllerNode(Node):
         if self.log is not None:
             self.log.append((t, r0, x1, x2, p1, p2, u, e1, e2, e3, self.a1_hat, self.a2_hat))
         if self.publish_internals:
-            self.internals_pub.publish(Float64MultiArray(data=[e1, e2, e3, self.a1_hat, self.a2_hat, r0]))
-            self.reference_pub.publish(Float64MultiArray(data=[r0, r1, r2, r3]))
+            self.internals_pub.publish(Float64MultiArray(data=[t, e1, e2, e3, self.a1_hat, self.a2_hat, r0]))
+            self.reference_pub.publish(Float64MultiArray(data=[t, r0, r1, r2, r3]))
         self.a1_hat, self.a2_hat = adapt(self.a1_hat, self.a2_hat, rate1, rate2, self.cp, self.dt)
         self.x3d_prev = x3d
         self.has_prev = True

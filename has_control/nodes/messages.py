@@ -22,14 +22,18 @@ from sensor_msgs.msg import JointState
 
 from ..params import Actuator
 
-STATE_NAMES = ["actuator", "chamber_1", "chamber_2"]
-COMMAND_NAMES = ["valve"]
+from ..bag import COMMAND_NAMES, STATE_NAMES
 
 #: The control loop: reliable (lock-step must not lose a sample), keep last 1
 #: (a stale sample is never worth delivering), volatile (no late-joiner replay).
 CONTROL_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.VOLATILE)
+
+#: Slow state that a late joiner needs (the gains in force): the last one kept.
+LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def stamp(sample: int, step_ns: int) -> Time:
@@ -44,13 +48,11 @@ def sample_of(t: Time, step_ns: int) -> int:
 
 
 def state_message(sample: int, step_ns: int, x, a: Actuator) -> JointState:
-    y, v, p1, p2 = (float(s) for s in x)
+    position, velocity, effort = a.joint_state(*(float(s) for s in x))
     msg = JointState()
     msg.header.stamp = stamp(sample, step_ns)
     msg.name = STATE_NAMES
-    msg.position = [y, a.volume_cap0 + a.area_cap * y, a.volume_rod0 - a.area_rod * y]
-    msg.velocity = [v, a.area_cap * v, -a.area_rod * v]
-    msg.effort = [a.area_cap * p1 - a.area_rod * p2, p1, p2]
+    msg.position, msg.velocity, msg.effort = list(position), list(velocity), list(effort)
     return msg
 
 
@@ -67,13 +69,13 @@ def command_message(answers: JointState, u: float) -> JointState:
     return msg
 
 
-def reset_service(node, action, message: str):
-    """``~/reset`` (std_srvs/Trigger) that calls ``action()`` and answers ``message``."""
+def trigger_service(node, name: str, action, message: str):
+    """A std_srvs/Trigger service ``name`` that calls ``action()`` and answers ``message``."""
     from std_srvs.srv import Trigger
 
-    def on_reset(request, response):
+    def on_call(request, response):
         action()
         response.success = True
         response.message = message
         return response
-    return node.create_service(Trigger, "~/reset", on_reset)
+    return node.create_service(Trigger, name, on_call)

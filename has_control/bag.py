@@ -1,0 +1,486 @@
+"""rosbag2 bags in MCAP: write, read (tolerating truncation), score, describe.
+
+Outer layer: rosbags and the MCAP format, no rclpy. A bag is what
+``ros2 bag record -s mcap`` writes: a directory with ``metadata.yaml``
+(rosbag2 version 9) and one ``.mcap`` file, profile ``ros2``, schemas
+``ros2msg``, messages ``cdr``, zstd-compressed chunks, each channel with its
+``offered_qos_profiles``. Log time is simulation time. The run's parameters
+travel in the bag's ``custom_data`` (key ``has_control/parameters``, JSON),
+so a bag can be scored without knowing how it was made.
+
+Reading is our own sequential MCAP scan, so that a bag whose recorder was
+killed mid-write still yields every complete chunk (with a warning saying how
+much was lost), and a bare ``.mcap`` file is accepted as rosbag2 accepts it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import struct
+import sys
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+import yaml
+
+from . import cdr
+from .errors import HasControlError
+
+MAGIC = b"\x89MCAP0\r\n"
+PARAMETERS_KEY = "has_control/parameters"
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+CLOCK = "rosgraph_msgs/msg/Clock"
+FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
+STRING = "std_msgs/msg/String"
+
+#: Topics of a recorded run, relative to the run's namespace.
+STATE, COMMAND, CLOCK_TOPIC = "state", "command", "clock"
+REFERENCE, CONTROLLER_STATE, GAINS = "controller/reference", "controller/controller_state", "controller/gains"
+STATE_NAMES = ["actuator", "chamber_1", "chamber_2"]
+COMMAND_NAMES = ["valve"]
+RUN_TOPICS = {STATE: JOINT_STATE, COMMAND: JOINT_STATE, CLOCK_TOPIC: CLOCK,
+              REFERENCE: FLOAT64_ARRAY, CONTROLLER_STATE: FLOAT64_ARRAY, GAINS: FLOAT64_ARRAY}
+
+
+class BagError(HasControlError):
+    """A bag that cannot be read or lacks what we need (one line naming the file)."""
+
+
+def warn(message: str) -> None:
+    print(f"has-control: warning: {message}", file=sys.stderr)
+
+
+# --- writing ----------------------------------------------------------------
+
+@lru_cache(maxsize=1)
+def typestore():
+    """Message definitions (rosbags' store of the current ROS 2 release)."""
+    from rosbags.typesys import Stores, get_typestore
+    return get_typestore(Stores.ROS2_KILTED)
+
+
+@dataclass(frozen=True)
+class QosSpec:
+    """The QoS a topic was offered with, as rosbag2 stores it."""
+
+    reliable: bool = True
+    depth: int = 1
+    transient_local: bool = False
+
+    def rosbags(self):
+        from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                        QosReliability, QosTime)
+        never = QosTime(0x7FFFFFFF, 0xFFFFFFFF)
+        return Qos(QosHistory.KEEP_LAST, self.depth,
+                   QosReliability.RELIABLE if self.reliable else QosReliability.BEST_EFFORT,
+                   QosDurability.TRANSIENT_LOCAL if self.transient_local else QosDurability.VOLATILE,
+                   never, never, QosLiveliness.AUTOMATIC, never, False)
+
+
+class BagWriter:
+    """A rosbag2 (version 9) MCAP bag with zstd chunks, written message by message."""
+
+    def __init__(self, path: str | Path, custom_data: dict[str, str] | None = None):
+        from rosbags.rosbag2 import Writer
+        from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+        self.path = Path(path)
+        if self.path.exists():
+            raise BagError(f"{self.path}: exists already; a bag is never overwritten")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+        self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        for k, v in (custom_data or {}).items():
+            self._writer.set_custom_data(k, v)
+        self._writer.open()
+        self._connections: dict[str, object] = {}
+        self.counts: dict[str, int] = {}
+
+    def add_topic(self, topic: str, msgtype: str, qos: QosSpec = QosSpec()) -> None:
+        if topic not in self._connections:
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=typestore(), offered_qos_profiles=[qos.rosbags()])
+            self.counts[topic] = 0
+
+    def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        self._writer.write(self._connections[topic], int(log_time_ns), data)
+        self.counts[topic] += 1
+
+    def write_message(self, topic: str, log_time_ns: int, msg, msgtype: str) -> None:
+        self.write(topic, log_time_ns, bytes(typestore().serialize_cdr(msg, msgtype)))
+
+    def sync(self) -> None:
+        """Close the open chunk and flush it to disk: a crash after this loses
+        nothing written so far. (rosbags has no public call for this; its MCAP
+        storage closes a chunk at 1 MiB by itself.)"""
+        storage = self._writer.storage
+        if storage.chunk.bio.tell():
+            storage.close_chunk()
+        storage.bio.flush()
+
+    def close(self) -> Path:
+        self._writer.close()
+        return self.path
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def parameters_json(cfg) -> str:
+    from .config import config_parameters
+    return json.dumps(config_parameters(cfg))
+
+
+def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: int = 0) -> None:
+    """Write an in-process :class:`~has_control.episode.Trace` as the messages
+    the node graph publishes for it: state, command, reference, controller
+    state and gains, under ``prefix`` (e.g. ``/validation``). Log time is
+    simulation time plus ``log_offset_ns``; stamps are simulation time."""
+    from .reference import reference
+    from .episode import EpisodeArrays
+    d = trace.data
+    n = len(d)
+    step_ns = int(round(cfg.episode.step * 1e9))
+    stamps = np.arange(n, dtype=np.int64) * step_ns
+    t = d[:, 0]
+    pos, vel, eff = cfg.actuator.joint_state(d[:, 2], d[:, 3], d[:, 4], d[:, 5])
+    rp = EpisodeArrays.from_config(cfg).reference
+    ref = np.array([(ti, *reference(rp, ti)) for ti in t]).reshape(n, 5)
+    k = trace.gains.as_tuple()
+    topics = {
+        STATE: (JOINT_STATE, cdr.encode_joint_states(stamps, STATE_NAMES, np.column_stack(pos),
+                                                     np.column_stack(vel), np.column_stack(eff))),
+        COMMAND: (JOINT_STATE, cdr.encode_joint_states(stamps, COMMAND_NAMES, d[:, 6:7])),
+        REFERENCE: (FLOAT64_ARRAY, cdr.encode_float64_arrays(ref)),
+        CONTROLLER_STATE: (FLOAT64_ARRAY, cdr.encode_float64_arrays(
+            np.column_stack([t, d[:, 7], d[:, 8], d[:, 9], d[:, 10], d[:, 11], d[:, 1]]))),
+        GAINS: (FLOAT64_ARRAY, cdr.encode_float64_arrays([[0.0, *k]])),
+    }
+    for rel, (ty, msgs) in topics.items():
+        topic = f"{prefix}/{rel}"
+        writer.add_topic(topic, ty)
+        times = stamps if len(msgs) == n else [0]
+        for ts, m in zip(times, msgs):
+            writer.write(topic, int(ts) + log_offset_ns, m)
+
+
+# --- reading ----------------------------------------------------------------
+
+@dataclass
+class Bag:
+    """What a bag holds, topic by topic, as (log time [ns], CDR bytes)."""
+
+    path: Path                       # the bag (directory or .mcap file) as given
+    files: list[Path]
+    types: dict[str, str] = field(default_factory=dict)
+    qos: dict[str, str] = field(default_factory=dict)
+    messages: dict[str, list[tuple[int, bytes]]] = field(default_factory=dict)
+    custom_data: dict[str, str] = field(default_factory=dict)
+    complete: bool = True
+    lost_bytes: int = 0
+    size: int = 0
+
+    def count(self, topic: str) -> int:
+        return len(self.messages.get(topic, ()))
+
+    def find(self, relative: str, msgtype: str) -> str:
+        """The one topic named ``relative`` under any namespace, of ``msgtype``."""
+        hits = [t for t, ty in self.types.items()
+                if (t == "/" + relative or t.endswith("/" + relative)) and ty == msgtype]
+        if len(hits) != 1:
+            have = ", ".join(sorted(self.types)) or "none"
+            what = "no" if not hits else f"{len(hits)} topics"
+            raise BagError(f"{self.path}: {what} '…/{relative}' ({msgtype}) in the bag; topics: {have}")
+        return hits[0]
+
+    def config(self, overrides: Iterable[str | Path] = ()):
+        """The run's Config from the bag (else the shipped defaults, with a warning)."""
+        from .config import build_config, load_config, read_parameter_files
+        overrides = list(overrides)
+        base = load_config(overrides)
+        stored = self.custom_data.get(PARAMETERS_KEY)
+        if stored is None:
+            warn(f"{self.path}: no {PARAMETERS_KEY} in the bag; scoring with the shipped configuration")
+            return base
+        try:
+            flat = json.loads(stored)
+        except ValueError:
+            raise BagError(f"{self.path}: custom_data {PARAMETERS_KEY} is not JSON") from None
+        cfg = build_config(flat, source=f"{self.path} ({PARAMETERS_KEY})")
+        if overrides:
+            over, sources = read_parameter_files(overrides)
+            cfg = build_config(over, source=", ".join(map(str, overrides)), base=cfg)
+        return cfg
+
+    @property
+    def start_ns(self) -> int:
+        return min((m[0][0] for m in self.messages.values() if m), default=0)
+
+    @property
+    def end_ns(self) -> int:
+        return max((m[-1][0] for m in self.messages.values() if m), default=0)
+
+
+def read_bag(path: str | Path, topics: Iterable[str] | None = None,
+             on_warning: Callable[[str], None] = warn) -> Bag:
+    """Read a bag directory or a bare ``.mcap`` file (see the module's docstring)."""
+    path = Path(path)
+    if not path.exists():
+        raise BagError(f"{path}: no such bag (directory or .mcap file)")
+    wanted = set(topics) if topics is not None else None
+    bag = Bag(path, [])
+    if path.is_dir():
+        meta = path / "metadata.yaml"
+        mcaps = sorted(path.glob("*.mcap"))
+        if meta.exists():
+            bag.files = _files_from_metadata(meta, bag)
+        elif len(mcaps) == 1:
+            on_warning(f"{path}: no metadata.yaml (was the recorder stopped?); reading {mcaps[0].name}")
+            bag.files = mcaps
+        else:
+            raise BagError(f"{path}: not a bag: no metadata.yaml and {len(mcaps)} .mcap files")
+    else:
+        bag.files = [path]
+    for f in bag.files:
+        _read_mcap(f, bag, wanted, on_warning)
+    return bag
+
+
+def _files_from_metadata(meta: Path, bag: Bag) -> list[Path]:
+    try:
+        doc = yaml.safe_load(meta.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        line = getattr(getattr(exc, "problem_mark", None), "line", None)
+        where = f" (line {line + 1})" if line is not None else ""
+        raise BagError(f"{meta}: malformed YAML{where}") from None
+    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    if not isinstance(info, dict):
+        raise BagError(f"{meta}: no rosbag2_bagfile_information mapping")
+    storage = info.get("storage_identifier")
+    if storage != "mcap":
+        raise BagError(f"{meta}: storage_identifier = {storage!r}: expected 'mcap'")
+    rel = info.get("relative_file_paths")
+    if not isinstance(rel, list) or not rel or not all(isinstance(r, str) for r in rel):
+        raise BagError(f"{meta}: relative_file_paths: expected a list of file names")
+    files = [meta.parent / r for r in rel]
+    for f in files:
+        if not f.exists():
+            raise BagError(f"{meta}: lists {f.name}, which does not exist")
+    custom = info.get("custom_data") or {}
+    if isinstance(custom, dict):
+        bag.custom_data.update({str(k): str(v) for k, v in custom.items()})
+    return files
+
+
+def _string(buf, pos: int) -> tuple[str, int]:
+    n = struct.unpack_from("<I", buf, pos)[0]
+    return bytes(buf[pos + 4:pos + 4 + n]).decode(), pos + 4 + n
+
+
+def _string_map(buf, pos: int) -> tuple[dict[str, str], int]:
+    n = struct.unpack_from("<I", buf, pos)[0]
+    end, pos, out = pos + 4 + n, pos + 4, {}
+    while pos < end:
+        k, pos = _string(buf, pos)
+        v, pos = _string(buf, pos)
+        out[k] = v
+    return out, end
+
+
+def _decompress(kind: str, data, size: int, where: str) -> bytes:
+    if kind == "":
+        return bytes(data)
+    if kind == "zstd":
+        import zstandard
+        return zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=size)
+    if kind == "lz4":
+        import lz4.frame
+        return lz4.frame.decompress(bytes(data))
+    raise BagError(f"{where}: unsupported chunk compression {kind!r}")
+
+
+def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
+    """Scan one MCAP file record by record (chunks decompressed as they come)."""
+    buf = f.read_bytes()
+    bag.size += len(buf)
+    if buf[:8] != MAGIC:
+        raise BagError(f"{f}: not an MCAP file (no MCAP magic at the start)")
+    schemas: dict[int, str] = {}
+    channels: dict[int, str] = {}
+    pos, good, chunks, footer = 8, 8, 0, False
+    n = len(buf)
+
+    def take(records: memoryview, origin: str) -> None:
+        p, end = 0, len(records)
+        while p + 9 <= end:
+            op = records[p]
+            ln = struct.unpack_from("<Q", records, p + 1)[0]
+            body = p + 9
+            if body + ln > end:
+                raise BagError(f"{origin}: a record runs past its end")
+            if op == 0x05:                                   # Message
+                cid = struct.unpack_from("<H", records, body)[0]
+                topic = channels.get(cid)
+                if topic is not None and (wanted is None or topic in wanted):
+                    t = struct.unpack_from("<Q", records, body + 6)[0]
+                    bag.messages[topic].append((t, bytes(records[body + 22:body + ln])))
+            elif op == 0x03:                                 # Schema
+                sid = struct.unpack_from("<H", records, body)[0]
+                name, _ = _string(records, body + 2)
+                schemas[sid] = name
+            elif op == 0x04:                                 # Channel
+                cid, sid = struct.unpack_from("<HH", records, body)
+                topic, q = _string(records, body + 4)
+                _enc, q = _string(records, q)
+                meta, _ = _string_map(records, q)
+                if cid not in channels:
+                    channels[cid] = topic
+                    bag.types.setdefault(topic, schemas.get(sid, ""))
+                    bag.qos.setdefault(topic, meta.get("offered_qos_profiles", ""))
+                    bag.messages.setdefault(topic, [])
+            p = body + ln
+
+    view = memoryview(buf)
+    try:
+        while pos + 9 <= n:
+            op = buf[pos]
+            ln = struct.unpack_from("<Q", buf, pos + 1)[0]
+            body = pos + 9
+            if body + ln > n:
+                break                                         # truncated record
+            rec = view[body:body + ln]
+            if op == 0x06:                                   # Chunk
+                size = struct.unpack_from("<Q", rec, 16)[0]
+                kind, q = _string(rec, 28)
+                clen = struct.unpack_from("<Q", rec, q)[0]
+                take(memoryview(_decompress(kind, rec[q + 8:q + 8 + clen], size, str(f))), str(f))
+                chunks += 1
+            elif op in (0x03, 0x04, 0x05):
+                take(view[pos:body + ln], str(f))
+            elif op == 0x0C:                                 # Metadata
+                name, q = _string(rec, 0)
+                meta, _ = _string_map(rec, q)
+                if name == "rosbag2" and "serialized_metadata" in meta and not bag.custom_data:
+                    _custom_from_serialized(meta["serialized_metadata"], bag)
+            elif op == 0x02:                                 # Footer
+                footer = True
+                good = body + ln
+                break
+            pos = good = body + ln
+    except (struct.error, UnicodeDecodeError, ValueError) as exc:
+        if isinstance(exc, BagError):
+            raise
+        pass                                                  # a torn record: stop at the last good one
+    except Exception as exc:                                  # zstd on a torn chunk
+        if type(exc).__name__ != "ZstdError":
+            raise
+    if footer and buf[good:good + 8] == MAGIC:
+        return
+    bag.complete = False
+    bag.lost_bytes += n - good
+    on_warning(f"{f}: truncated (no MCAP footer): kept {chunks} complete chunks, "
+               f"{sum(map(len, bag.messages.values()))} messages; lost the last {n - good} bytes")
+
+
+def _custom_from_serialized(text: str, bag: Bag) -> None:
+    try:
+        info = yaml.safe_load(text).get("rosbag2_bagfile_information", {})
+        bag.custom_data.update({str(k): str(v) for k, v in (info.get("custom_data") or {}).items()})
+    except (yaml.YAMLError, AttributeError):
+        pass
+
+
+# --- what a run's bag says ----------------------------------------------------
+
+@dataclass
+class RecordedRun:
+    """A lock-step run read back from its bag, one row per sample."""
+
+    t: np.ndarray          # [s]
+    y: np.ndarray          # [m]
+    ydot: np.ndarray       # [m/s]
+    p1: np.ndarray         # [Pa]
+    p2: np.ndarray         # [Pa]
+    u: np.ndarray          # [m]
+    x1d: np.ndarray        # [m]
+    diverged: bool
+    cfg: object
+
+    @property
+    def samples(self) -> int:
+        return len(self.u)
+
+
+def _by_sample(stamps_ns: np.ndarray, step_ns: int, what: str, path) -> np.ndarray:
+    idx = np.rint(stamps_ns / step_ns).astype(np.int64)
+    if len(idx) and not np.array_equal(idx, np.arange(len(idx))):
+        dup = len(idx) - len(np.unique(idx))
+        raise BagError(f"{path}: {what} is not one message per sample from sample 0 "
+                       f"({len(idx)} messages, {dup} repeated); was it a lock-step run?")
+    return idx
+
+
+def recorded_run(bag: Bag, overrides: Iterable[str | Path] = ()) -> RecordedRun:
+    """The samples of a lock-step run in ``bag``: states, commands and reference."""
+    cfg = bag.config(overrides)
+    step_ns = int(round(cfg.episode.step * 1e9))
+    st, cm, rf = bag.find(STATE, JOINT_STATE), bag.find(COMMAND, JOINT_STATE), bag.find(REFERENCE, FLOAT64_ARRAY)
+    states, commands, refs = bag.messages[st], bag.messages[cm], bag.messages[rf]
+    if not states or not commands or not refs:
+        empty = [t for t, m in ((st, states), (cm, commands), (rf, refs)) if not m]
+        raise BagError(f"{bag.path}: no messages on {', '.join(empty)}")
+    _, pos, vel, eff = cdr.joint_states([d for _, d in states], f"{bag.path}: {st}")
+    _by_sample(cdr.stamps_ns([d for _, d in states]), step_ns, st, bag.path)
+    _by_sample(cdr.stamps_ns([d for _, d in commands]), step_ns, cm, bag.path)
+    _, u, _, _ = cdr.joint_states([d for _, d in commands], f"{bag.path}: {cm}")
+    ref = cdr.float64_arrays([d for _, d in refs], f"{bag.path}: {rf}")
+    _by_sample(np.rint(ref[:, 0] * 1e9).astype(np.int64), step_ns, rf, bag.path)
+    m = min(len(u), len(ref), len(pos), cfg.episode.samples)
+    y = pos[:, 0]
+    bad = ~np.isfinite(y) | (np.abs(y) > cfg.episode.y_limit)
+    diverged = bool(bad.any())
+    if not diverged and m < cfg.episode.samples:
+        raise BagError(f"{bag.path}: {m} of {cfg.episode.samples} samples recorded: the run is incomplete")
+    return RecordedRun(ref[:m, 0], y[:m], vel[:m, 0], eff[:m, 1], eff[:m, 2], u[:m, 0],
+                       ref[:m, 1], diverged, cfg)
+
+
+def score_bag(path: str | Path, overrides: Iterable[str | Path] = ()):
+    """J, e_max, e_μ, e_σ of a recorded lock-step run (SPEC §6), as the core scores it."""
+    from .cost import score_arrays
+    bag = read_bag(path, topics=None)
+    run = recorded_run(bag, overrides)
+    e1 = run.x1d - run.y                     # SPEC §3: e1 = x1d − x1
+    return score_arrays(e1, run.u, run.cfg.episode.as_array(), diverged=run.diverged), run
+
+
+def describe(bag: Bag) -> str:
+    """A ``ros2 bag info``-style summary."""
+    dur = (bag.end_ns - bag.start_ns) / 1e9
+    total = sum(bag.count(t) for t in bag.types)
+    lines = [f"Files:             {', '.join(str(f) for f in bag.files)}",
+             f"Bag size:          {bag.size / 2**20:.1f} MiB",
+             "Storage id:        mcap",
+             f"Duration:          {dur:.6f} s",
+             f"Start:             {bag.start_ns / 1e9:.6f} s",
+             f"End:               {bag.end_ns / 1e9:.6f} s",
+             f"Messages:          {total}",
+             f"Complete:          {'yes' if bag.complete else f'no (truncated, {bag.lost_bytes} bytes lost)'}",
+             "Topic information:"]
+    width = max((len(t) for t in bag.types), default=0)
+    for t in sorted(bag.types):
+        lines.append(f"  Topic: {t:<{width}} | Type: {bag.types[t]} | Count: {bag.count(t)} | "
+                     "Serialization Format: cdr")
+    if PARAMETERS_KEY in bag.custom_data:
+        lines.append(f"custom_data:       {PARAMETERS_KEY} ({len(json.loads(bag.custom_data[PARAMETERS_KEY]))} parameters)")
+    return "\n".join(lines)
+
+
+def finite_or_str(x: float):
+    return float(x) if math.isfinite(x) else ("inf" if x > 0 else "nan")

@@ -1,0 +1,323 @@
+"""The tuner node: tunes the controller's gains with a particle swarm.
+
+It drives the swarm's ask/tell interface (:func:`has_control.tuning.tune`,
+the same code as ``has-control tune``). With ``evaluator: graph`` every
+candidate runs through the node graph: the tuner sets the controller's
+gains with ``set_parameters_atomically``, resets plant and controller
+(``~/reset``), starts the plant (``~/start``), records the episode to an
+MCAP bag and takes the candidate's J from that bag. Several plant/controller
+pairs in their own namespaces (``lanes: [/sim0, /sim1]``) evaluate
+candidates in parallel, in this process or anywhere on the ROS network.
+With ``evaluator: batch`` the candidates are scored by the in-process batch
+evaluator (fast); either way the best gains are then set on every lane's
+controller, and ``validate_best`` re-runs them through the graph, recorded
+and scored from the bag.
+
+Parameters: ``swarm.*`` (config/tuner.yaml), the model and episode
+(``actuator.*``, ``simulation.*``, ``cost.*``, ``metrics.*``, ...; the same
+files as plant and controller), ``evaluator`` (graph | batch),
+``validate_best``, ``lanes`` (namespaces; ``[""]`` is the root), ``controller``
+and ``plant`` (node names within a lane), ``record`` (a directory: the
+session bag ``record/session`` and, for graph evaluation, one bag per
+episode under ``record/episodes``; empty: episodes go to a temporary
+directory), ``resume`` (a directory of an interrupted session),
+``episode_timeout`` [s of wall time].
+Topic ``~/progress`` (std_msgs/Float64MultiArray): [iteration, best J,
+k1, k2, k3, evaluations, elapsed s], once per iteration.
+"""
+from __future__ import annotations
+
+import math
+import queue
+import shutil
+import tempfile
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from ..bag import BagError, score_bag
+from ..config import build_config
+from ..errors import ConfigError, HasControlError
+from ..swarm import Swarm
+from ..tuning import Tuning, load_tuning, tune, tuning_from_parameters
+from .parameters import config_from_node, declare_config
+from .recorder import Recorder
+
+PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.")
+EVALUATORS = ("graph", "batch")
+
+
+def tuning_parameters(t: Tuning) -> dict:
+    """Flat ``swarm.*`` parameters of a Tuning (inverse of tuning_from_parameters)."""
+    out = {f"swarm.{k}": v for k, v in asdict(t.swarm).items()}
+    out.update({"swarm.seed": t.seed, "swarm.lower": list(t.lower), "swarm.upper": list(t.upper)})
+    return out
+
+
+def _wait(future, timeout: float, what: str):
+    end = time.monotonic() + timeout
+    while not future.done():
+        if time.monotonic() > end:
+            raise HasControlError(f"{what}: no answer within {timeout:g} s")
+        time.sleep(0.0005)
+    return future.result()
+
+
+class Lane:
+    """One plant/controller pair in ``namespace``, driven through services."""
+
+    def __init__(self, node: "TunerNode", namespace: str, controller: str, plant: str, y_limit: float):
+        ns = namespace.rstrip("/")
+        self.namespace = ns or "/"
+        self.controller_name, self.plant_name = f"{ns}/{controller}", f"{ns}/{plant}"
+        self.controller_params = AsyncParameterClient(node, self.controller_name)
+        self.plant_params = AsyncParameterClient(node, self.plant_name)
+        self.controller_reset = node.create_client(Trigger, f"{self.controller_name}/reset")
+        self.plant_reset = node.create_client(Trigger, f"{self.plant_name}/reset")
+        self.plant_start = node.create_client(Trigger, f"{self.plant_name}/start")
+        self.recorder = Recorder(node, ns, y_limit=y_limit)
+        self.logger = node.get_logger()
+
+    def ready(self) -> bool:
+        return (self.controller_params.services_are_ready() and self.plant_params.services_are_ready()
+                and all(c.service_is_ready() for c in (self.controller_reset, self.plant_reset, self.plant_start))
+                and self.recorder.connected())
+
+    def _trigger(self, client, timeout: float = 10.0) -> None:
+        res = _wait(client.call_async(Trigger.Request()), timeout, client.srv_name)
+        if not res.success:
+            raise HasControlError(f"{client.srv_name}: {res.message}")
+
+    def set_parameters(self, client: AsyncParameterClient, params: list[Parameter], where: str) -> str | None:
+        """None when accepted, else the reason."""
+        res = _wait(client.set_parameters_atomically(params), 10.0, f"{where}/set_parameters_atomically")
+        r = res.result
+        return None if r.successful else (r.reason or "rejected")
+
+    def set_gains(self, gains) -> str | None:
+        return self.set_parameters(self.controller_params,
+                                   [Parameter(f"gains.k{i + 1}", value=float(g)) for i, g in enumerate(gains)],
+                                   self.controller_name)
+
+    def gains(self) -> list[float]:
+        res = _wait(self.controller_params.get_parameters(["gains.k1", "gains.k2", "gains.k3"]), 10.0,
+                    f"{self.controller_name}/get_parameters")
+        return [v.double_value for v in res.values]
+
+    def run(self, gains, cfg, bag: Path, timeout: float, writer=None, prefix: str = "") -> float:
+        """One episode with ``gains`` recorded to ``bag`` (or into ``writer``); its J from the bag."""
+        reason = self.set_gains(gains)
+        if reason is not None:
+            self.logger.warning(f"{self.controller_name} rejected k = {tuple(gains)}: {reason}; scored +inf")
+            return math.inf
+        self._trigger(self.plant_reset)
+        self._trigger(self.controller_reset)
+        n = cfg.episode.samples
+        self.recorder.open(bag, cfg, samples=n, writer=writer, prefix=prefix)
+        self._trigger(self.plant_start)
+        finished = self.recorder.done.wait(timeout)
+        end = time.monotonic() + 2.0               # the last sample's reference and internals
+        while finished and not self.recorder.diverged and time.monotonic() < end and not all(
+                self.recorder.count(t) >= n for t in ("state", "controller/reference")):
+            time.sleep(0.001)
+        if writer is not None:
+            self.recorder.detach()
+            return math.nan                         # scored by the caller once the bag is closed
+        self.recorder.close()
+        if not finished:
+            self._trigger(self.plant_reset)
+            self.logger.warning(f"{self.namespace}: episode with k = {tuple(gains)} did not finish "
+                                f"within {timeout:g} s; scored +inf")
+            return math.inf
+        try:
+            score, _ = score_bag(bag)
+        except BagError as exc:
+            self.logger.warning(f"{exc}; scored +inf")
+            return math.inf
+        return score.J
+
+
+class TunerNode(Node):
+    def __init__(self, name: str = "tuner", **kwargs):
+        super().__init__(name, **kwargs)
+        declare_config(self, PREFIXES)
+        for key, value in tuning_parameters(load_tuning()).items():
+            self.declare_parameter(key, value)
+        self.declare_parameter("evaluator", "batch")
+        self.declare_parameter("validate_best", True)
+        self.declare_parameter("lanes", [""])
+        self.declare_parameter("controller", "controller")
+        self.declare_parameter("plant", "plant")
+        self.declare_parameter("record", "")
+        self.declare_parameter("resume", "")
+        self.declare_parameter("episode_timeout", 120.0)
+        self.cfg = config_from_node(self, PREFIXES)
+        self.tuning = self._tuning()
+        self.evaluator = self.get_parameter("evaluator").value
+        if self.evaluator not in EVALUATORS:
+            raise ConfigError(f"parameter evaluator = {self.evaluator!r}: expected one of {', '.join(EVALUATORS)}")
+        lanes = list(self.get_parameter("lanes").value) or [""]
+        self.lanes = [Lane(self, ns, self.get_parameter("controller").value,
+                           self.get_parameter("plant").value, self.cfg.episode.y_limit) for ns in lanes]
+        self.progress_pub = self.create_publisher(Float64MultiArray, "~/progress", 10)
+        self.result: dict | None = None
+        self.error: str | None = None
+        self.done = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def _tuning(self) -> Tuning:
+        flat = {f"swarm.{k}": p.value for k, p in self.get_parameters_by_prefix("swarm").items()}
+        flat = {k: (list(v) if hasattr(v, "tolist") or isinstance(v, (list, tuple)) else v) for k, v in flat.items()}
+        return tuning_from_parameters(flat, {k: f"parameter {k} of {self.get_fully_qualified_name()}" for k in flat})
+
+    # --- session -------------------------------------------------------------
+    def start(self) -> None:
+        """Run the session in a thread of its own (the executor keeps spinning)."""
+        self._thread = threading.Thread(target=self._guarded, name="tuner-session", daemon=True)
+        self._thread.start()
+
+    def _guarded(self) -> None:
+        try:
+            self.result = self.run_session()
+        except HasControlError as exc:
+            self.error = str(exc)
+            self.get_logger().error(self.error)
+        finally:
+            self.done.set()
+
+    def wait_for_lanes(self, timeout: float = 30.0) -> None:
+        end = time.monotonic() + timeout
+        while not all(lane.ready() for lane in self.lanes):
+            if time.monotonic() > end:
+                missing = [lane.namespace for lane in self.lanes if not lane.ready()]
+                raise HasControlError(f"lanes {missing}: plant, controller (and their services) not found "
+                                      f"within {timeout:g} s")
+            time.sleep(0.01)
+
+    def run_session(self) -> dict:
+        from ..session import Session, resume
+        log = self.get_logger()
+        record = self.get_parameter("record").value
+        resume_dir = self.get_parameter("resume").value
+        timeout = float(self.get_parameter("episode_timeout").value)
+        cfg, tuning, swarm, session = self.cfg, self.tuning, None, None
+        if resume_dir:
+            r = resume(resume_dir)
+            cfg, tuning, swarm, session = r.cfg, r.tuning, r.swarm, r.session
+            record = resume_dir
+            log.info(f"resuming {session.path} at iteration {swarm.iteration}")
+        elif record:
+            session = Session(record, tuning, cfg, self.evaluator)
+        self.wait_for_lanes()
+        n = cfg.episode.samples
+        for lane in self.lanes:
+            reason = lane.set_parameters(lane.plant_params, [Parameter("samples", value=n)], lane.plant_name)
+            if reason:
+                raise HasControlError(f"{lane.plant_name} rejected samples = {n}: {reason}")
+        scratch = Path(tempfile.mkdtemp(prefix="has_control_tuner_"))
+        episodes = Path(record) / "episodes" if record else scratch
+        t0 = time.perf_counter()
+
+        def on_iteration(sw: Swarm) -> None:
+            k = sw.gbest_x
+            self.progress_pub.publish(Float64MultiArray(data=[
+                float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations),
+                time.perf_counter() - t0]))
+            log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
+                     f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")
+            if session is not None:
+                session.record(sw)
+
+        objective = None
+        if self.evaluator == "graph":
+            objective = self._graph_objective(cfg, episodes, timeout, keep=bool(record))
+        try:
+            res = tune(cfg, tuning, callback=on_iteration, swarm=swarm, objective=objective)
+            best = res.gains
+            for lane in self.lanes:
+                reason = lane.set_gains(best)
+                if reason:
+                    raise HasControlError(f"{lane.controller_name} rejected the best gains {best}: {reason}")
+            out = res.as_json()
+            out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes])
+            validation = None
+            if self.get_parameter("validate_best").value:
+                lane = self.lanes[0]
+                if session is not None:
+                    lane.run(best, cfg, session.path, timeout, writer=session.writer, prefix="/validation")
+                    bag = session.finish(out)
+                    session = None
+                else:
+                    bag = scratch / "validation"
+                    lane.run(best, cfg, bag, timeout)
+                validation, _ = score_bag(bag)
+                out["validation"] = validation.as_json()
+                out["validation_bag"] = str(bag) if record else None
+                log.info(f"validated k = ({best[0]:.2f}, {best[1]:.2f}, {best[2]:.2f}) through the graph: "
+                         f"J = {validation.J:.6e} (batch J = {res.result.fun:.6e})")
+            if session is not None:
+                session.finish(out)
+            out["controller_gains"] = self.lanes[0].gains()
+            return out
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+    def _graph_objective(self, cfg, episodes: Path, timeout: float, keep: bool):
+        free: queue.Queue[Lane] = queue.Queue()
+        for lane in self.lanes:
+            free.put(lane)
+        pool = ThreadPoolExecutor(max_workers=len(self.lanes), thread_name_prefix="tuner-lane")
+        batch = [0]
+
+        def one(args) -> float:
+            i, gains = args
+            lane = free.get()
+            try:
+                bag = episodes / f"batch{batch[0]:04d}_candidate{i:03d}"
+                j = lane.run(gains, cfg, bag, timeout)
+                if not keep:
+                    shutil.rmtree(bag, ignore_errors=True)
+                return j
+            finally:
+                free.put(lane)
+
+        def objective(x: np.ndarray) -> np.ndarray:
+            costs = np.array(list(pool.map(one, enumerate(x))), dtype=np.float64)
+            batch[0] += 1
+            return costs
+        return objective
+
+
+def main(args=None):
+    import sys
+    rclpy.init(args=args)
+    try:
+        node = TunerNode()
+    except HasControlError as exc:
+        print(f"tuner: error: {exc}", file=sys.stderr)
+        rclpy.try_shutdown()
+        sys.exit(2)
+    from rclpy.executors import MultiThreadedExecutor
+    executor = MultiThreadedExecutor()
+    executor.add_node(node)
+    node.start()
+    try:
+        while rclpy.ok() and not node.done.is_set():
+            executor.spin_once(timeout_sec=0.1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    if node.error:
+        sys.exit(2)

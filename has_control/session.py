@@ -1,0 +1,158 @@
+"""Tuning sessions recorded to a bag, and resumed from it after a crash.
+
+A session bag (``DIR/session``, rosbag2 MCAP) holds, as std_msgs/String JSON:
+
+* ``/tuner/settings``: the tuning settings and every model parameter, first;
+* ``/tuner/iteration``: per iteration, every particle's position and cost,
+  gbest and the swarm's mean and spread (an :class:`IterationRecord`);
+* ``/tuner/swarm``: per iteration, the swarm state needed to resume (positions,
+  velocities, personal bests, the random generator's state);
+* ``/tuner/result``: the final result (the keys of ``tune --json``);
+
+and the validation run of the best gains under ``/validation/...``, the same
+topics a recorded run has, so ``has-control score DIR/session`` scores it.
+
+After each iteration the bag's chunk is closed and flushed, so killing the
+tuner at any moment loses at most the iteration in progress.
+:func:`resume` reads what survived (a truncated bag included) and returns the
+swarm as it was after the last complete iteration; continuing it gives
+exactly the result of an uninterrupted run.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from pathlib import Path
+
+from .bag import PARAMETERS_KEY, STRING, BagError, BagWriter, QosSpec, parameters_json, read_bag, write_trace
+from .swarm import Swarm, SwarmSettings, record_dict, record_from
+from .tuning import Tuning
+
+SESSION = "session"
+SETTINGS, ITERATION, SWARM, RESULT = "/tuner/settings", "/tuner/iteration", "/tuner/swarm", "/tuner/result"
+VALIDATION = "/validation"
+TUNING_KEY = "has_control/tuning"
+
+
+def tuning_json(t: Tuning) -> dict:
+    return {"swarm": dataclasses.asdict(t.swarm), "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
+
+
+def tuning_from_json(d: dict) -> Tuning:
+    return Tuning(SwarmSettings(**d["swarm"]), tuple(d["lower"]), tuple(d["upper"]), int(d["seed"]))
+
+
+def _string(text: str) -> bytes:
+    from .bag import typestore
+    msg = typestore().types[STRING](data=text)
+    return bytes(typestore().serialize_cdr(msg, STRING))
+
+
+def _unstring(data: bytes) -> str:
+    n = int.from_bytes(data[4:8], "little")
+    return data[8:8 + n - 1].decode()
+
+
+class Session:
+    """Writes one tuning session's bag (see the module's docstring)."""
+
+    def __init__(self, directory: str | Path, tuning: Tuning, cfg, evaluator: str = "batch",
+                 _copy_from=None):
+        self.directory = Path(directory)
+        self.path = self.directory / SESSION
+        settings = {"tuning": tuning_json(tuning), "evaluator": evaluator,
+                    "parameters": json.loads(parameters_json(cfg))}
+        self.writer = BagWriter(self.path, {PARAMETERS_KEY: parameters_json(cfg),
+                                            TUNING_KEY: json.dumps(settings["tuning"])})
+        for topic in (SETTINGS, ITERATION, SWARM, RESULT):
+            self.writer.add_topic(topic, STRING, QosSpec(depth=10, transient_local=topic == SETTINGS))
+        if _copy_from is None:
+            self.writer.write(SETTINGS, time.time_ns(), _string(json.dumps(settings)))
+        else:
+            for topic, t, data in _copy_from:
+                self.writer.write(topic, t, data)
+        self.writer.sync()
+
+    def record(self, swarm: Swarm) -> None:
+        """After an iteration: its record and the swarm's state, then flush."""
+        now = time.time_ns()
+        self.writer.write(ITERATION, now, _string(json.dumps(record_dict(swarm.history[-1]))))
+        self.writer.write(SWARM, now, _string(json.dumps(swarm.state_dict(history=False))))
+        self.writer.sync()
+
+    def finish(self, result: dict, validation_trace=None, cfg=None) -> Path:
+        """The result, the validation run of the best gains, and close the bag."""
+        self.writer.write(RESULT, time.time_ns(), _string(json.dumps(result)))
+        if validation_trace is not None:
+            write_trace(self.writer, validation_trace, cfg, VALIDATION, log_offset_ns=time.time_ns())
+        return self.writer.close()
+
+    def close(self) -> Path:
+        return self.writer.close()
+
+
+@dataclasses.dataclass
+class Resumed:
+    swarm: Swarm
+    tuning: Tuning
+    cfg: object
+    evaluator: str
+    session: Session
+
+
+def resume(directory: str | Path) -> Resumed:
+    """The session in ``directory`` at its last complete iteration, writing on.
+
+    The surviving bag is moved to ``session.interrupted``, its complete
+    iterations are copied into a fresh ``session`` bag (flushed), and only
+    then is the old one deleted: a crash during resume loses nothing.
+    """
+    from .config import build_config
+    d = Path(directory)
+    old = d / (SESSION + ".interrupted")
+    cur = d / SESSION
+    if old.exists():                      # an earlier resume was interrupted: start from its source
+        if cur.exists():
+            shutil.rmtree(cur)
+    elif cur.exists():
+        cur.rename(old)
+    else:
+        raise BagError(f"{cur}: no session bag to resume (was the session started with --out {d}?)")
+    bag = read_bag(old, topics=(SETTINGS, ITERATION, SWARM, RESULT))
+    if bag.messages.get(RESULT):
+        old.rename(cur)
+        raise BagError(f"{cur}: the session has finished already (see {d / 'tune.json'})")
+    settings = bag.messages.get(SETTINGS) or []
+    if not settings:
+        raise BagError(f"{old}: no {SETTINGS} message; cannot resume")
+    s = json.loads(_unstring(settings[0][1]))
+    tuning = tuning_from_json(s["tuning"])
+    cfg = build_config(s["parameters"], source=f"{old} ({SETTINGS})")
+    states = bag.messages.get(SWARM) or []
+    records = bag.messages.get(ITERATION) or []
+    if states:
+        state = json.loads(_unstring(states[-1][1]))
+        k = int(state["iteration"])
+        state["history"] = [json.loads(_unstring(r)) for _, r in records[:k]]
+        if len(state["history"]) != k:
+            raise BagError(f"{old}: {len(records)} iteration records for a swarm at iteration {k}")
+        swarm = Swarm.from_state(state)
+    else:
+        k = 0
+        swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
+    keep = [(SETTINGS, *settings[0])]
+    keep += [(ITERATION, *r) for r in records[:k]] + [(SWARM, *x) for x in states[:k]]
+    keep.sort(key=lambda m: m[1])
+    session = Session(d, tuning, cfg, s.get("evaluator", "batch"), _copy_from=keep)
+    shutil.rmtree(old)
+    return Resumed(swarm, tuning, cfg, s.get("evaluator", "batch"), session)
+
+
+def stored_result(directory: str | Path) -> dict | None:
+    """The ``/tuner/result`` of a finished session, else None."""
+    bag = read_bag(Path(directory) / SESSION, topics=(RESULT,), on_warning=lambda m: None)
+    msgs = bag.messages.get(RESULT) or []
+    return json.loads(_unstring(msgs[-1][1])) if msgs else None
+
