@@ -390,7 +390,8 @@ def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
 
 def _custom_from_serialized(text: str, bag: Bag) -> None:
     try:
-        info = yaml.safe_load(text).get("rosbag2_bagfile_information", {})
+        doc = yaml.safe_load(text)
+        info = doc.get("rosbag2_bagfile_information", doc)     # rosbag2 stores the inner mapping
         bag.custom_data.update({str(k): str(v) for k, v in (info.get("custom_data") or {}).items()})
     except (yaml.YAMLError, AttributeError):
         pass

@@ -47,7 +47,7 @@ def test_ros2_run_finds_the_package_and_its_executables(install, domain_id):
                          check=True).stdout.split()
     assert out[0] == str(install / "has_control")
     assert (Path(out[1]) / "config" / "actuator.yaml").is_file()
-    for exe in ("plant", "controller"):
+    for exe in ("plant", "controller", "tuner"):
         p = install / "has_control" / "lib" / "has_control" / exe
         assert p.is_file() and os.access(p, os.X_OK)
 

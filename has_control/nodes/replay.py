@@ -1,0 +1,165 @@
+"""Play a bag back onto the ROS graph, or replay its states to a live controller.
+
+:func:`replay` is ``ros2 bag play`` for our bags: every message is published
+raw (the recorded CDR bytes) at its log time scaled by ``rate``, and ``/clock``
+follows the playback so nodes with ``use_sim_time`` keep time with it.
+
+:func:`replay_controller` is a regression check: it starts a controller node
+with the parameters stored in the bag (and the gains in force at the start of
+the recording), feeds it the recorded plant states one at a time, and
+compares each command it answers with the recorded one.
+"""
+from __future__ import annotations
+
+import heapq
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from rclpy.experimental import EventsExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, String
+
+from .. import cdr
+from ..bag import (CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, STATE, STRING, BagError,
+                   read_bag)
+from .messages import CONTROL_QOS, sample_of
+
+CLASSES = {JOINT_STATE: JointState, CLOCK: Clock, FLOAT64_ARRAY: Float64MultiArray, STRING: String}
+
+
+def _qos(offered: str) -> QoSProfile:
+    """The recorded publisher's reliability and durability (rosbag2's metadata)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                      reliability=ReliabilityPolicy.BEST_EFFORT if "best_effort" in offered
+                      else ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if "transient_local" in offered
+                      else DurabilityPolicy.VOLATILE)
+
+
+def replay(path, rate: float = 1.0, topics: list[str] | None = None,
+           context: rclpy.Context | None = None, wait_for_subscribers: float = 0.5) -> tuple[int, float]:
+    """Publish the bag's messages with their timing scaled by ``rate``; returns
+    (messages published, wall seconds)."""
+    bag = read_bag(path, topics=topics)
+    if topics:
+        missing = sorted(set(topics) - set(bag.types))
+        if missing:
+            raise BagError(f"{path}: no topic {', '.join(missing)}; topics: {', '.join(sorted(bag.types))}")
+    unknown = {t: ty for t, ty in bag.types.items() if ty not in CLASSES and bag.messages.get(t)}
+    if unknown:
+        t, ty = next(iter(unknown.items()))
+        raise BagError(f"{path}: topic {t} has type {ty}, which replay does not know")
+    own = context is None
+    if own:
+        context = rclpy.Context()
+        rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("replay", context=context)
+        pubs = {t: node.create_publisher(CLASSES[bag.types[t]], t, _qos(bag.qos.get(t, "")))
+                for t in bag.types if bag.messages.get(t)}
+        own_clock = "/clock" not in pubs
+        clock = node.create_publisher(Clock, "/clock", 10) if own_clock else None
+        time.sleep(wait_for_subscribers)                 # let subscribers discover us
+        stream = heapq.merge(*[[(t_ns, topic, data) for t_ns, data in msgs]
+                               for topic, msgs in bag.messages.items() if topic in pubs])
+        t0_bag = bag.start_ns
+        t0 = time.perf_counter()
+        count = 0
+        for t_ns, topic, data in stream:
+            due = (t_ns - t0_bag) / 1e9 / rate
+            wait = due - (time.perf_counter() - t0)
+            if wait > 0:
+                time.sleep(wait)
+            if own_clock:
+                clock.publish(Clock(clock=_time(t_ns)))
+            pubs[topic].publish(data)
+            count += 1
+        seconds = time.perf_counter() - t0
+        node.destroy_node()
+        return count, seconds
+    finally:
+        if own:
+            rclpy.try_shutdown(context=context)
+
+
+def _time(ns: int):
+    from builtin_interfaces.msg import Time
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+@dataclass
+class ReplayCheck:
+    samples: int
+    mismatches: int
+    max_abs_diff: float                 # [m]
+    first_mismatch: int | None
+
+
+def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | None = None,
+                      timeout: float = 5.0) -> ReplayCheck:
+    """Feed the recorded states to a fresh controller node; compare its commands."""
+    from ..config import config_parameters
+    from .controller_node import ControllerNode
+    bag = read_bag(path)
+    cfg = bag.config()
+    st, cm = bag.find(STATE, JOINT_STATE), bag.find(COMMAND, JOINT_STATE)
+    states, commands = bag.messages[st], bag.messages[cm]
+    if not states or not commands:
+        raise BagError(f"{path}: no messages on {st if not states else cm}")
+    _, recorded_u, _, _ = cdr.joint_states([d for _, d in commands], cm)
+    recorded_u = recorded_u[:, 0]
+    params = config_parameters(cfg)
+    try:
+        gains_topic = bag.find(GAINS, FLOAT64_ARRAY)
+        g = cdr.float64_arrays([bag.messages[gains_topic][0][1]])[0]
+        params.update({"gains.k1": g[1], "gains.k2": g[2], "gains.k3": g[3]})
+    except (BagError, IndexError):
+        pass                                          # the stored parameters' gains
+    n = min(len(states), len(recorded_u))
+    own = context is None
+    if own:
+        context = rclpy.Context()
+        rclpy.init(context=context)
+    try:
+        ns = "/replay"
+        controller = ControllerNode(namespace=ns, context=context, parameter_overrides=[
+            Parameter(k, value=v) for k, v in params.items()] + [Parameter("publish_internals", value=False)])
+        driver = rclpy.create_node("replay_driver", namespace=ns, context=context)
+        answers: dict[int, float] = {}
+        step_ns = int(round(cfg.episode.step * 1e9))
+        pub = driver.create_publisher(JointState, "state", CONTROL_QOS)
+        driver.create_subscription(JointState, "command",
+                                   lambda m: answers.__setitem__(sample_of(m.header.stamp, step_ns),
+                                                                 m.position[0]), CONTROL_QOS)
+        ex = EventsExecutor(context=context)
+        ex.add_node(controller)
+        ex.add_node(driver)
+        end = time.monotonic() + 10.0
+        while not (pub.get_subscription_count() and controller.command_pub.get_subscription_count()):
+            if time.monotonic() > end:
+                raise BagError("replay: the controller did not connect within 10 s")
+            ex.spin_once(timeout_sec=0.01)
+        idx = cdr.stamps_ns([d for _, d in states[:n]]) // step_ns
+        diffs = np.full(n, np.inf)
+        for k in range(n):
+            i = int(idx[k])
+            pub.publish(states[k][1])
+            deadline = time.monotonic() + timeout
+            while i not in answers and time.monotonic() < deadline:
+                ex.spin_once(timeout_sec=0.01)
+            if i in answers:
+                diffs[k] = abs(answers.pop(i) - recorded_u[k])
+        ex.shutdown()
+        controller.destroy_node()
+        driver.destroy_node()
+    finally:
+        if own:
+            rclpy.try_shutdown(context=context)
+    bad = np.flatnonzero(~(diffs <= tolerance))
+    return ReplayCheck(n, int(bad.size), float(diffs.max()) if n else 0.0,
+                       int(bad[0]) if bad.size else None)

@@ -1,0 +1,275 @@
+"""MCAP bags: what the recorder writes, scoring from it, other readers, bad files, replay."""
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+import yaml
+
+from has_control import cdr
+from has_control.bag import BagError, read_bag, score_bag, typestore
+from has_control.episode import simulate, with_horizon
+from has_control.nodes.stack import run_stack
+from has_control.params import Config
+
+HORIZON = 1.5
+N = 5000
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """One 1.5 s lock-step run through the nodes, recorded (ROS domain of its own)."""
+    d = tmp_path_factory.mktemp("bags") / "run"
+    cfg = with_horizon(Config(), HORIZON)
+    run = run_stack(cfg, record=d, domain_id=231 if os.getpid() % 2 else 232)
+    return d, cfg, run
+
+
+def cli(*args, domain=None):
+    env = dict(os.environ)
+    if domain is not None:
+        env["ROS_DOMAIN_ID"] = str(domain)
+    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=600, env=env)
+
+
+def test_one_state_and_one_command_per_sample(recorded):
+    d, _, run = recorded
+    bag = read_bag(d)
+    assert bag.complete
+    counts = {t: bag.count(t) for t in bag.types}
+    assert counts == {"/state": N, "/command": N, "/clock": N, "/controller/reference": N,
+                      "/controller/controller_state": N, "/controller/gains": 1}
+    stamps = cdr.stamps_ns([m for _, m in bag.messages["/state"]])
+    np.testing.assert_array_equal(stamps, np.arange(N) * 300_000)
+    np.testing.assert_array_equal([t for t, _ in bag.messages["/state"]], stamps)  # log time = sim time
+
+
+def test_the_bag_is_rosbag2_mcap_as_ros2_bag_writes_it(recorded):
+    from mcap.reader import make_reader
+    d, _, _ = recorded
+    meta = yaml.safe_load((d / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["version"] == 9 and meta["storage_identifier"] == "mcap"
+    assert meta["relative_file_paths"] == ["run.mcap"] and meta["message_count"] == 5 * N + 1
+    qos = {t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"]
+           for t in meta["topics_with_message_count"]}
+    assert qos["/state"][0]["reliability"] == "reliable" and qos["/state"][0]["depth"] == 1
+    assert qos["/controller/gains"][0]["durability"] == "transient_local"
+    with open(d / "run.mcap", "rb") as f:
+        reader = make_reader(f)
+        header, summary = reader.get_header(), reader.get_summary()
+    assert header.profile == "ros2"
+    assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+    assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+    assert all("offered_qos_profiles" in c.metadata for c in summary.channels.values())
+    assert {ci.compression for ci in summary.chunk_indexes} == {"zstd"}
+
+
+def test_score_from_the_bag_equals_the_in_process_score(recorded):
+    d, cfg, run = recorded
+    score, rec = score_bag(d)
+    ref = simulate(cfg)
+    assert score == ref.score == run.score                 # every field, bit for bit
+    np.testing.assert_array_equal(rec.u, ref["u"])
+    np.testing.assert_array_equal(rec.y, ref["y"])
+
+
+def test_cli_score_and_bag_info(recorded, tmp_path):
+    d, _, _ = recorded
+    r = cli("score", d, "--json")
+    assert r.returncode == 0, r.stderr
+    s = cli("simulate", "--duration", HORIZON, "--json")
+    assert json.loads(r.stdout) == json.loads(s.stdout)
+    info = cli("bag-info", d)
+    assert info.returncode == 0, info.stderr
+    for topic in ("/state", "/command", "/clock", "/controller/reference", "/controller/gains"):
+        assert f"Topic: {topic} " in info.stdout
+    assert f"Count: {N}" in info.stdout and "Duration:          1.499700 s" in info.stdout
+
+
+def test_other_readers_decode_every_message(recorded):
+    """rosbags' AnyReader and mcap_ros2's reader agree with the in-process trace."""
+    from mcap_ros2.reader import read_ros2_messages
+    from rosbags.highlevel import AnyReader
+    d, cfg, _ = recorded
+    ref = simulate(cfg)
+    counts, ys, us = {}, [], []
+    with AnyReader([d], default_typestore=typestore()) as reader:
+        for conn, t, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            counts[conn.topic] = counts.get(conn.topic, 0) + 1
+            if conn.topic == "/state":
+                ys.append(msg.position[0])
+            elif conn.topic == "/command":
+                us.append(msg.position[0])
+    assert counts["/state"] == counts["/command"] == N
+    np.testing.assert_array_equal(ys, ref["y"])
+    np.testing.assert_array_equal(us, ref["u"])
+    e1 = []
+    total = 0
+    for m in read_ros2_messages(str(d / "run.mcap")):
+        total += 1
+        if m.channel.topic == "/controller/controller_state":
+            e1.append(m.ros_msg.data[1])
+    assert total == 5 * N + 1
+    np.testing.assert_array_equal(e1, ref["e1"])
+
+
+def test_encoded_trace_messages_equal_rosbags_serialisation():
+    ts = typestore()
+    js = ts.types["sensor_msgs/msg/JointState"]
+    header = ts.types["std_msgs/msg/Header"](stamp=ts.types["builtin_interfaces/msg/Time"](sec=3, nanosec=300000),
+                                            frame_id="")
+    m = js(header=header, name=["actuator", "chamber_1", "chamber_2"], position=np.array([1.0, 2.0, 3.0]),
+           velocity=np.array([4.0, 5.0, 6.0]), effort=np.array([7.0, 8.0, 9.0]))
+    mine = cdr.encode_joint_states([3_000_300_000], ["actuator", "chamber_1", "chamber_2"],
+                                   [[1.0, 2, 3]], [[4.0, 5, 6]], [[7.0, 8, 9]])[0]
+    assert mine == bytes(ts.serialize_cdr(m, "sensor_msgs/msg/JointState"))
+    f = ts.types["std_msgs/msg/Float64MultiArray"](
+        layout=ts.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0), data=np.array([0.5, 1.0]))
+    assert cdr.encode_float64_arrays([[0.5, 1.0]])[0] == bytes(ts.serialize_cdr(f, "std_msgs/msg/Float64MultiArray"))
+
+
+# --- bad files -----------------------------------------------------------------
+
+def test_a_bare_mcap_file_is_accepted(recorded):
+    d, _, run = recorded
+    score, _ = score_bag(d / "run.mcap")
+    assert score == run.score
+
+
+def test_truncated_bag_yields_complete_chunks_with_a_warning(recorded, tmp_path):
+    d, _, _ = recorded
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    data = (d / "run.mcap").read_bytes()
+    (cut / "cut.mcap").write_bytes(data[: len(data) // 2])          # recorder killed: no metadata.yaml
+    warnings = []
+    bag = read_bag(cut, on_warning=warnings.append)
+    assert not bag.complete and bag.lost_bytes > 0
+    assert any("no metadata.yaml" in w for w in warnings)
+    assert any("truncated" in w and "lost the last" in w for w in warnings)
+    n = bag.count("/state")
+    assert 0 < n < N
+    np.testing.assert_array_equal(cdr.stamps_ns([m for _, m in bag.messages["/state"]]),
+                                  np.arange(n) * 300_000)             # a prefix, in order
+    r = cli("bag-info", cut)
+    assert r.returncode == 0 and "truncated" in r.stderr and "Complete:          no" in r.stdout
+    r = cli("score", cut)
+    assert r.returncode == 2 and r.stderr.count("\n") <= 4 and "incomplete" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("case", ["not-mcap", "bad-yaml", "no-topics", "missing"])
+def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case):
+    d, _, _ = recorded
+    if case == "not-mcap":
+        target = tmp_path / "x.mcap"
+        target.write_text("this is not a bag\n")
+        expect = "not an MCAP file"
+    elif case == "bad-yaml":
+        target = tmp_path / "bag"
+        target.mkdir()
+        (target / "bag.mcap").write_bytes((d / "run.mcap").read_bytes())
+        (target / "metadata.yaml").write_text("rosbag2_bagfile_information: [unclosed\n")
+        expect = "metadata.yaml: malformed YAML"
+    elif case == "no-topics":
+        from has_control.bag import BagWriter
+        target = tmp_path / "clock_only"
+        with BagWriter(target) as w:
+            w.add_topic("/clock", "rosgraph_msgs/msg/Clock")
+            w.write("/clock", 0, cdr.encode_float64_arrays([[0.0]])[0])
+        expect = "no '…/state'"
+    else:
+        target = tmp_path / "nothing"
+        expect = "no such bag"
+    r = cli("score", target)
+    assert r.returncode == 2
+    err = [line for line in r.stderr.splitlines() if line.startswith("has-control: error")]
+    assert len(err) == 1 and str(target) in err[0] and expect in err[0], r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_the_recorder_never_overwrites(recorded):
+    d, _, _ = recorded
+    r = cli("stack", "--duration", HORIZON, "--record", d)
+    assert r.returncode == 2 and "exists already" in r.stderr
+
+
+# --- replay ----------------------------------------------------------------------
+
+def test_replay_to_a_live_controller_matches_bit_for_bit(recorded, domain_id):
+    d, _, _ = recorded
+    r = cli("replay", d, "--controller", domain=domain_id)
+    assert r.returncode == 0, r.stderr
+    assert f"replayed {N} states to a live controller: 0 mismatches, max |du| = 0.000e+00 m" in r.stdout
+
+
+def _with_parameters(src, dst, **changes):
+    """A copy of bag ``src`` whose stored parameters differ by ``changes``."""
+    meta = yaml.safe_load((src / "metadata.yaml").read_text())
+    custom = meta["rosbag2_bagfile_information"]["custom_data"]
+    params = json.loads(custom["has_control/parameters"])
+    params.update({k.replace("__", "."): v for k, v in changes.items()})
+    custom["has_control/parameters"] = json.dumps(params)
+    dst.mkdir()
+    (dst / "run.mcap").write_bytes((src / "run.mcap").read_bytes())
+    (dst / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    return dst
+
+
+def test_replay_with_a_changed_controller_reports_mismatches(recorded, tmp_path, domain_id):
+    from has_control.nodes.replay import replay_controller
+    d, _, _ = recorded
+    # the gains topic says 150: the controller runs with the gains in force then, so no mismatch ...
+    same = _with_parameters(d, tmp_path / "same", gains__k1=151.0)
+    # ... but a changed adaptation law does mismatch
+    changed = _with_parameters(d, tmp_path / "changed", adaptation__gain=[96000.0, 1e-49])
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    try:
+        assert replay_controller(same, context=ctx).mismatches == 0
+        check = replay_controller(changed, context=ctx)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    assert check.mismatches > 0 and check.max_abs_diff > 0
+
+
+def test_replay_publishes_clock_that_use_sim_time_nodes_follow(recorded, domain_id):
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+    from has_control.nodes.replay import replay
+    d, _, _ = recorded
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    try:
+        listener = rclpy.create_node("listener", context=ctx,
+                                     parameter_overrides=[Parameter("use_sim_time", value=True)])
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(listener)
+        out = {}
+        th = threading.Thread(target=lambda: out.setdefault("r", replay(d, rate=5.0, topics=["/clock"],
+                                                                        context=ctx, wait_for_subscribers=1.0)))
+        th.start()
+        while th.is_alive():
+            ex.spin_once(timeout_sec=0.01)
+        end = time.monotonic() + 1.0
+        while time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.01)
+        now = listener.get_clock().now().nanoseconds
+        listener.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+    count, seconds = out["r"]
+    assert count == N and seconds == pytest.approx(HORIZON / 5.0, rel=0.5)
+    assert now == (N - 1) * 300_000                          # the last recorded sample time
+
+
+def test_score_bag_raises_bag_error_for_missing_path(tmp_path):
+    with pytest.raises(BagError, match="no such bag"):
+        score_bag(tmp_path / "none")
