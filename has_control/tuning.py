@@ -56,14 +56,15 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
     t = base or Tuning()
     fields = {f.name for f in dataclasses.fields(SwarmSettings)} | {"seed"} | _LIST_KEYS
     changes: dict[str, Any] = {}
+    where: dict[str, str] = {}
     for key, value in flat.items():
         if not key.startswith("swarm."):
             continue
         name = key[len("swarm."):]
-        where = (sources or {}).get(key, "parameters")
+        where[name] = (sources or {}).get(key, "parameters")
 
         def bad(why):
-            return ConfigError(f"{where}: {key} = {value!r}: {why}")
+            return ConfigError(f"{where[name]}: {key} = {value!r}: {why}")
         if name not in fields:
             raise bad("unknown parameter")
         if name in _INT_KEYS:
@@ -82,11 +83,15 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
         else:
             value = float(value)
         changes[name] = value
-        try:
-            t.replace(**changes)
-        except SwarmError as exc:
-            raise bad(str(exc).split(": ", 2)[-1]) from None
-    return t.replace(**changes)
+    try:
+        return t.replace(**changes)
+    except SwarmError as exc:
+        msg = str(exc)
+        culprit = next((n for n in changes if msg.startswith(f"swarm.{n} ")), None)
+        if culprit is None and msg.startswith("bounds"):
+            culprit = next((n for n in ("lower", "upper") if n in changes), None)
+        origin = where.get(culprit, "parameters") if culprit else ", ".join(sorted(set(where.values())))
+        raise ConfigError(f"{origin}: {msg}") from None
 
 
 def load_tuning(paths: Iterable[str | Path] = (), defaults: bool = True) -> Tuning:

@@ -1,0 +1,110 @@
+"""The tuner node and tuning sessions: graph = batch, lanes, divergence, resume after SIGKILL."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from has_control.bag import BagError, read_bag, score_bag
+from has_control.episode import with_horizon
+from has_control.nodes.stack import run_tuning_stack
+from has_control.params import Config
+from has_control.session import ITERATION, SESSION
+from has_control.tuning import load_tuning, tune
+
+
+def cli(*args, domain=None, **kw):
+    env = dict(os.environ)
+    if domain is not None:
+        env["ROS_DOMAIN_ID"] = str(domain)
+    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=900, env=env, **kw)
+
+
+def test_stack_tune_sets_the_best_gains_through_parameters(domain_id):
+    r = cli("stack", "--tune", "--iterations", 3, "--particles", 4, "--duration", 1.5, domain=domain_id)
+    assert r.returncode == 0, r.stderr
+    best = load_tuning().replace(iterations=3, particles=4)
+    ref = tune(with_horizon(Config(), 1.5), best)
+    k = ", ".join(f"{g:.2f}" for g in ref.gains)
+    assert f"best k = ({k}), J = {ref.result.fun:.6e}" in r.stdout
+    assert f"controller gains now ({k})" in r.stdout
+    assert f"validated through the graph: J = {ref.result.fun:.6e}" in r.stdout
+
+
+def test_graph_evaluation_over_two_lanes_equals_the_batch_evaluator(domain_id, tmp_path):
+    cfg = with_horizon(Config(), 1.5)
+    out = run_tuning_stack(cfg, {"iterations": 2, "particles": 3}, evaluator="graph",
+                           namespaces=["/sim0", "/sim1"], record=str(tmp_path / "rec"), domain_id=domain_id)
+    ref = tune(cfg, load_tuning().replace(iterations=2, particles=3))
+    assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun
+    assert out["history"] == [h.best_cost for h in ref.result.history]
+    assert out["controller_gains"] == list(ref.gains)
+    assert out["validation"]["J"] == ref.result.fun and out["lanes"] == ["/sim0", "/sim1"]
+    episodes = sorted((tmp_path / "rec" / "episodes").iterdir())
+    assert len(episodes) == 6                                   # every candidate, recorded
+    assert score_bag(episodes[0])[0].J == ref.result.history[0].costs[0]
+    session = read_bag(tmp_path / "rec" / SESSION)
+    assert session.count(ITERATION) == 2 and session.count("/validation/sim0/state") == 5000
+
+
+def test_diverging_candidates_score_inf_and_the_tuner_carries_on(domain_id, tmp_path):
+    cfg = with_horizon(Config(), 1.5)
+    bounds = tmp_path / "wild.yaml"
+    bounds.write_text("/**:\n  ros__parameters:\n    swarm:\n      lower: [9000.0, 9000.0, 9000.0]\n"
+                      "      upper: [10000.0, 10000.0, 10000.0]\n")
+    out = run_tuning_stack(cfg, {"iterations": 2, "particles": 2}, config_files=[bounds],
+                           evaluator="graph", validate_best=False, domain_id=domain_id)
+    assert out["J"] == "inf" and out["evaluations"] == 4 and out["iterations"] == 2
+
+
+@pytest.mark.parametrize("iterations", [40])
+def test_a_session_killed_mid_way_resumes_to_the_same_result(tmp_path, iterations):
+    args = ["tune", "--particles", 40, "--iterations", iterations, "--json"]
+    full = cli(*args)
+    assert full.returncode == 0, full.stderr
+    d = tmp_path / "session"
+    env = dict(os.environ)
+    p = subprocess.Popen([sys.executable, "-m", "has_control.cli", *map(str, args), "--out", d],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    done = 0
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and p.poll() is None:
+        time.sleep(0.05)
+        try:
+            done = read_bag(d / SESSION, topics=[ITERATION], on_warning=lambda m: None).count(ITERATION)
+        except BagError:                   # not created yet, or its first bytes not yet on disk
+            continue
+        if done >= 5:
+            break
+    assert p.poll() is None, "the session ended before it could be killed"
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait()
+    assert 5 <= done < iterations
+    resumed = cli("tune", "--resume", d, "--json")
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming" in resumed.stderr
+    a, b = json.loads(full.stdout), json.loads(resumed.stdout)
+    a.pop("seconds"), b.pop("seconds")
+    assert a == b                                          # the same final answer, bit for bit
+    bag = read_bag(d / SESSION)
+    assert bag.complete and bag.count(ITERATION) == iterations
+    assert score_bag(d / SESSION)[0].J == a["J"]           # the validation run of the best gains
+    again = cli("tune", "--resume", d)
+    assert again.returncode == 2 and "finished already" in again.stderr
+
+
+def test_resume_without_a_session_is_one_line(tmp_path):
+    r = cli("tune", "--resume", tmp_path)
+    assert r.returncode == 2 and "no session bag to resume" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_bad_tuner_parameter_is_rejected_with_one_line(domain_id):
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tuner", "--ros-args", "-p", "evaluator:=fast"],
+                       capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
+    assert r.returncode == 2 and "evaluator = 'fast'" in r.stderr and "Traceback" not in r.stderr
+
