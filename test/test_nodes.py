@@ -115,3 +115,100 @@ def test_reset_services_restore_the_initial_state(context):
     ex.shutdown()
     for n in (plant, controller, client_node):
         n.destroy_node()
+
+
+def _spin_until(ex, cond, seconds):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and not cond():
+        ex.spin_once(timeout_sec=0.01)
+    return cond()
+
+
+def test_killing_the_controller_mid_run_trips_the_fail_safe_and_a_restart_resumes(context, domain_id):
+    """A controller process dies mid-run (SIGKILL): the plant centres the valve and
+    runs on; a new controller process takes over."""
+    import os
+    import subprocess
+    import sys
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false"]
+    ex = EventsExecutor(context=context)
+    plant = PlantNode(context=context, parameter_overrides=[Parameter("command_timeout", value=0.05)])
+    plant.log = []
+    ex.add_node(plant)
+    first = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    second = None
+    try:
+        assert _spin_until(ex, plant.connected, 60)
+        plant.start()
+        assert _spin_until(ex, lambda: plant.sample >= 500, 60) and plant.failsafe_events == 0
+        first.kill()
+        first.wait()
+        killed_at = plant.sample
+        assert _spin_until(ex, lambda: plant.failsafe_events >= 10, 10)
+        assert plant._in_outage and plant.sample > killed_at            # the run continues
+        outage = [row[-1] for row in plant.log[killed_at + 2:]]
+        assert outage and all(u == 0.0 for u in outage)                  # valve centred
+        second = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        back = plant.sample
+        assert _spin_until(ex, lambda: plant.sample >= back + 500 and not plant._in_outage, 60)
+        resumed = [row[-1] for row in plant.log[-100:]]
+        assert all(u != 0.0 for u in resumed)                            # under control again
+        assert abs(plant.x[0]) < 0.2                                     # and still sane
+    finally:
+        for p in (first, second):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
+        ex.shutdown()
+        plant.destroy_node()
+
+
+def test_realtime_mode_holds_the_last_command_and_reports_diagnostics(context):
+    from diagnostic_msgs.msg import DiagnosticArray
+    ex = EventsExecutor(context=context)
+    plant = PlantNode(context=context, parameter_overrides=[
+        Parameter("mode", value="realtime"), Parameter("samples", value=4000)])
+    controller = ControllerNode(context=context, parameter_overrides=[Parameter("publish_internals", value=False)])
+    listener = rclpy.create_node("diagnostics_listener", context=context)
+    reports = []
+    listener.create_subscription(DiagnosticArray, "/diagnostics", reports.append, 10)
+    for n in (plant, controller, listener):
+        ex.add_node(n)
+    plant.log = []
+    assert _spin_until(ex, plant.connected, 10)
+    plant.start()
+    assert _spin_until(ex, lambda: plant.finished, 30)
+    plant.wait_realtime(10)
+    _spin_until(ex, lambda: False, 0.2)
+    stats = plant.realtime_stats
+    assert stats["samples"] == 4000 and set(stats) >= {"rate_hz", "jitter_p99_us", "overruns"}
+    status = reports[-1].status[0]
+    assert "realtime loop" in status.name and {kv.key for kv in status.values} >= {"rate_hz", "jitter_p99_us"}
+    u = np.array([row[-1] for row in plant.log])
+    assert np.count_nonzero(u) > len(u) // 2                # commands arrived and were held
+    ex.shutdown()
+    for n in (plant, controller, listener):
+        n.destroy_node()
+
+
+def test_bad_plant_mode_is_rejected(context):
+    with pytest.raises(ValueError, match="mode = 'fast'"):
+        PlantNode(context=context, parameter_overrides=[Parameter("mode", value="fast")])
+
+
+def test_controller_follows_sim_time_from_the_plant_clock(context):
+    cfg = with_horizon(Config(), 1.5)
+    ex = EventsExecutor(context=context)
+    plant = PlantNode(context=context, parameter_overrides=[Parameter("samples", value=cfg.episode.samples)])
+    controller = ControllerNode(context=context, parameter_overrides=[Parameter("use_sim_time", value=True)])
+    for n in (plant, controller):
+        ex.add_node(n)
+    assert _spin_until(ex, plant.connected, 10)
+    plant.start()
+    assert _spin_until(ex, lambda: plant.finished, 60)
+    _spin_until(ex, lambda: False, 0.3)
+    assert controller.get_clock().now().nanoseconds == (cfg.episode.samples - 1) * 300_000
+    ex.shutdown()
+    for n in (plant, controller):
+        n.destroy_node()

@@ -141,6 +141,11 @@ class PlantNode(Node):
         else:
             self._publish()
 
+    def wait_realtime(self, timeout: float | None = None) -> None:
+        """Block until the realtime loop has ended (its last diagnostics are out)."""
+        if self._rt_thread is not None:
+            self._rt_thread.join(timeout)
+
     def connected(self) -> bool:
         """Both directions of the loop have a peer (a controller is listening and talking)."""
         return bool(self.state_pub.get_subscription_count()
@@ -214,10 +219,10 @@ class PlantNode(Node):
         while not self._rt_stop.is_set():
             due = t0 + (self.sample + 1) * period_ns
             now = time.perf_counter_ns()
-            if due - now > 200_000:
-                time.sleep((due - now - 150_000) / 1e9)
+            if due - now > 120_000:
+                time.sleep((due - now - 80_000) / 1e9)
             while (now := time.perf_counter_ns()) < due:
-                pass
+                time.sleep(0)                          # spin, but let the executor thread run
             late = (now - due) / 1e3                   # [µs]
             lateness.append(late)
             if late > period_ns / 1e3:
