@@ -15,7 +15,6 @@ much was lost), and a bare ``.mcap`` file is accepted as rosbag2 accepts it.
 from __future__ import annotations
 
 import json
-import math
 import struct
 import sys
 from dataclasses import dataclass, field
@@ -417,6 +416,13 @@ class RecordedRun:
     def samples(self) -> int:
         return len(self.u)
 
+    def __getitem__(self, column: str) -> np.ndarray:
+        """Trace-style columns: t, x1d, y, ydot, P1, P2, u, e1."""
+        if column == "e1":
+            return self.x1d - self.y                  # SPEC §3: e1 = x1d − x1
+        return {"t": self.t, "x1d": self.x1d, "y": self.y, "ydot": self.ydot, "P1": self.p1,
+                "P2": self.p2, "u": self.u}[column]
+
 
 def _by_sample(stamps_ns: np.ndarray, step_ns: int, what: str, path) -> np.ndarray:
     idx = np.rint(stamps_ns / step_ns).astype(np.int64)
@@ -457,8 +463,7 @@ def score_bag(path: str | Path, overrides: Iterable[str | Path] = ()):
     from .cost import score_arrays
     bag = read_bag(path, topics=None)
     run = recorded_run(bag, overrides)
-    e1 = run.x1d - run.y                     # SPEC §3: e1 = x1d − x1
-    return score_arrays(e1, run.u, run.cfg.episode.as_array(), diverged=run.diverged), run
+    return score_arrays(run["e1"], run.u, run.cfg.episode.as_array(), diverged=run.diverged), run
 
 
 def describe(bag: Bag) -> str:
@@ -482,6 +487,3 @@ def describe(bag: Bag) -> str:
         lines.append(f"custom_data:       {PARAMETERS_KEY} ({len(json.loads(bag.custom_data[PARAMETERS_KEY]))} parameters)")
     return "\n".join(lines)
 
-
-def finite_or_str(x: float):
-    return float(x) if math.isfinite(x) else ("inf" if x > 0 else "nan")

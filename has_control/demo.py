@@ -1,19 +1,21 @@
-"""``scripts/demo``: tune the gains with PSO+CP+TVAC and compare with the paper (Table 3).
+"""``scripts/demo``: the session a user runs first.
 
-Tunes on the batch evaluator (reference configuration, one seed), runs the
-manual and the tuned gains, prints manual vs tuned vs the paper's numbers,
-and writes the figures.
+The tuner node, composed in one process with a plant and a controller node,
+tunes k1, k2, k3 with PSO+CP+TVAC on the in-process batch evaluator (one
+seed, the paper's 80 particles x 100 iterations), sets the best gains on the
+controller through ROS parameters, runs the validation episode through the
+node graph recorded to a rosbag2 MCAP bag, and scores it from the bag. Then
+it prints manual vs tuned vs the paper's Table 3 with the bag's and the
+figures' paths.
 """
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
-import time
 from pathlib import Path
 
-from .episode import simulate
 from .params import MANUAL_GAINS, PAPER_TABLE3, PAPER_TUNED_GAINS, Config
-from .tuning import load_tuning, tune
 
 PAPER_ROWS = (("PSO+CP+TVAC-ABC (paper)", PAPER_TABLE3["tuned"]),
               ("ABC manual (paper)", PAPER_TABLE3["manual"]))
@@ -21,50 +23,57 @@ PAPER_ROWS = (("PSO+CP+TVAC-ABC (paper)", PAPER_TABLE3["tuned"]),
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="scripts/demo", description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="out/demo", help="directory for figures (default out/demo)")
-    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
+    ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
-    from .cli import Progress
+    from .bag import read_bag, recorded_run
+    from .episode import simulate
+    from .nodes.stack import run_tuning_stack
     from .plots import plot_convergence, plot_gains, plot_tracking
+    from .session import SESSION, swarm_result
+    from .tuning import load_tuning
 
     cfg = Config()
-    tuning = load_tuning()
-    if args.seed is not None:
-        tuning = tuning.replace(seed=args.seed)
+    tuning = load_tuning().replace(seed=args.seed)
     out = Path(args.out)
-    print(f"Tuning k1, k2, k3 with {tuning.swarm.variant} (seed {tuning.seed}, "
-          f"{tuning.swarm.particles} particles x {tuning.swarm.iterations} iterations, "
-          f"10 s episodes at 0.3 ms) ...", flush=True)
-    progress = Progress("  tuning")
-    t0 = time.perf_counter()
-    res = tune(cfg, tuning, callback=progress)
-    progress.close()
-    k = res.gains
-    print(f"  best k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), J = {res.result.fun:.6e}, "
-          f"{res.result.nfev} episodes in {time.perf_counter() - t0:.1f} s")
+    session_dir = out / "tuning"
+    shutil.rmtree(session_dir, ignore_errors=True)        # the demo's own output of an earlier run
+    print(f"Tuner node + plant + controller in one process: {tuning.swarm.variant}, seed {tuning.seed}, "
+          f"{tuning.swarm.particles} particles x {tuning.swarm.iterations} iterations of 10 s episodes "
+          f"at 0.3 ms on the batch evaluator ...", flush=True)
+    res = run_tuning_stack(cfg, {"seed": args.seed}, evaluator="batch", record=str(session_dir),
+                           validate_best=True, log_every=10)
+    k, v = res["gains"], res["validation"]
+    print(f"  best k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), J = {res['J']:.6e}, "
+          f"{res['evaluations']} episodes in {res['seconds']:.1f} s")
+    print(f"  set on /controller through parameters: gains.k1..k3 = "
+          f"({', '.join(f'{g:.2f}' for g in res['controller_gains'])})")
+    print(f"  validation run through the graph, recorded to {res['validation_bag']}")
+    print(f"  scored from the bag: J = {v['J']:.6e} (batch evaluator: {res['J']:.6e})")
     print("  paper (Table 2): k = (656.11, 656.13, 656.14), J = 7.8198e-4 (exponent sign lost in print)")
     print()
     print("Table 3, steady state 0.5 s .. 9.5 s, statistics of |e1|:")
-    print(f"  {'controller':<30} {'k1':>8} {'k2':>8} {'k3':>8} {'J':>11} {'e_max [m]':>11} "
+    print(f"  {'controller':<34} {'k1':>8} {'k2':>8} {'k3':>8} {'J':>11} {'e_max [m]':>11} "
           f"{'e_mu [m]':>11} {'e_sigma [m]':>11}")
-    traces = {}
-    for label, g in (("ABC manual", MANUAL_GAINS.as_tuple()),
-                     ("ABC, paper's tuned gains", PAPER_TUNED_GAINS.as_tuple()),
-                     ("ABC, our PSO+CP+TVAC gains", k)):
-        traces[label] = tr = simulate(cfg, g)
-        s = tr.score
-        print(f"  {label:<30} {g[0]:8.2f} {g[1]:8.2f} {g[2]:8.2f} {s.J:11.4e} {s.e_max:11.4e} "
-              f"{s.e_mu:11.4e} {s.e_sigma:11.4e}")
+
+    def row(label, g, s):
+        print(f"  {label:<34} {g[0]:8.2f} {g[1]:8.2f} {g[2]:8.2f} {s['J']:11.4e} {s['e_max']:11.4e} "
+              f"{s['e_mu']:11.4e} {s['e_sigma']:11.4e}")
+    manual = simulate(cfg, MANUAL_GAINS.as_tuple())
+    row("ABC manual", MANUAL_GAINS.as_tuple(), manual.score.as_json())
+    row("ABC, paper's tuned gains", PAPER_TUNED_GAINS.as_tuple(), simulate(cfg, PAPER_TUNED_GAINS.as_tuple()).score.as_json())
+    row("ABC, our PSO+CP+TVAC (from bag)", k, v)
     for label, (a, b, c) in PAPER_ROWS:
-        print(f"  {label:<30} {'':8} {'':8} {'':8} {'':>11} {a:11.4e} {b:11.4e} {c:11.4e}")
-    manual = traces["ABC manual"]
-    tuned = traces["ABC, our PSO+CP+TVAC gains"]
+        print(f"  {label:<34} {'':8} {'':8} {'':8} {'':>11} {a:11.4e} {b:11.4e} {c:11.4e}")
+    tuned = recorded_run(read_bag(session_dir / SESSION))
+    result = swarm_result(session_dir)
     figs = [plot_tracking([("manual (150, 158, 162)", manual),
-                           (f"tuned ({k[0]:.0f}, {k[1]:.0f}, {k[2]:.0f})", tuned)],
+                           (f"tuned ({k[0]:.0f}, {k[1]:.0f}, {k[2]:.0f}), from the bag", tuned)],
                           out / "tracking.png"),
-            plot_convergence([(res.variant, res.result)], out / "convergence.png"),
-            plot_gains(res.result, out / "gains.png", f"{res.variant}, seed {res.seed}")]
+            plot_convergence([(res["variant"], result)], out / "convergence.png"),
+            plot_gains(result, out / "gains.png", f"{res['variant']}, seed {res['seed']}")]
     print()
+    print(f"Session bag: {session_dir / SESSION} (has-control bag-info / score / replay --controller)")
     print("Figures: " + ", ".join(str(f) for f in figs))
     return 0
 

@@ -150,6 +150,21 @@ def resume(directory: str | Path) -> Resumed:
     return Resumed(swarm, tuning, cfg, s.get("evaluator", "batch"), session)
 
 
+def swarm_result(directory: str | Path):
+    """The session's :class:`SwarmResult` rebuilt from its iteration records
+    (for the convergence and gain figures)."""
+    import math
+    from .swarm import SwarmResult
+    bag = read_bag(Path(directory) / SESSION, topics=(ITERATION, RESULT), on_warning=lambda m: None)
+    history = [record_from(json.loads(_unstring(d))) for _, d in bag.messages.get(ITERATION, [])]
+    if not history:
+        raise BagError(f"{Path(directory) / SESSION}: no iteration records")
+    last = history[-1]
+    return SwarmResult(last.best_position, last.best_cost, len(history),
+                       sum(len(h.costs) for h in history), "from the session bag",
+                       math.isfinite(last.best_cost), 0, history)
+
+
 def stored_result(directory: str | Path) -> dict | None:
     """The ``/tuner/result`` of a finished session, else None."""
     bag = read_bag(Path(directory) / SESSION, topics=(RESULT,), on_warning=lambda m: None)

@@ -128,7 +128,7 @@ def _drain(executor, recorder, commands: int, timeout: float = 10.0) -> None:
 def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str = "batch",
                      namespaces: list[str] | None = None, record: str | None = None,
                      validate_best: bool = True, context: rclpy.Context | None = None,
-                     domain_id: int | None = None, timeout: float = 3600.0) -> dict:
+                     domain_id: int | None = None, timeout: float = 3600.0, log_every: int = 1) -> dict:
     """Plant and controller (one pair per namespace) and the tuner node in one
     process on the EventsExecutor; returns the tuner's result dict.
 
@@ -154,7 +154,8 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
         tuner = TunerNode(context=context, parameter_overrides=model + [
             Parameter(k, value=v) for k, v in tuning_parameters(tuning).items()] + [
             Parameter("evaluator", value=evaluator), Parameter("lanes", value=list(namespaces)),
-            Parameter("validate_best", value=validate_best), Parameter("record", value=record or "")])
+            Parameter("validate_best", value=validate_best), Parameter("record", value=record or ""),
+            Parameter("log_every", value=log_every)])
         nodes.append(tuner)
         executor = EventsExecutor(context=context)
         for node in nodes:

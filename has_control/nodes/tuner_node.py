@@ -21,7 +21,7 @@ and ``plant`` (node names within a lane), ``record`` (a directory: the
 session bag ``record/session`` and, for graph evaluation, one bag per
 episode under ``record/episodes``; empty: episodes go to a temporary
 directory), ``resume`` (a directory of an interrupted session),
-``episode_timeout`` [s of wall time].
+``episode_timeout`` [s of wall time], ``log_every`` (log every n-th iteration).
 Topic ``~/progress`` (std_msgs/Float64MultiArray): [iteration, best J,
 k1, k2, k3, evaluations, elapsed s], once per iteration.
 """
@@ -161,6 +161,7 @@ class TunerNode(Node):
         self.declare_parameter("record", "")
         self.declare_parameter("resume", "")
         self.declare_parameter("episode_timeout", 120.0)
+        self.declare_parameter("log_every", 1)
         self.cfg = config_from_node(self, PREFIXES)
         self.tuning = self._tuning()
         self.evaluator = self.get_parameter("evaluator").value
@@ -227,14 +228,16 @@ class TunerNode(Node):
         scratch = Path(tempfile.mkdtemp(prefix="has_control_tuner_"))
         episodes = Path(record) / "episodes" if record else scratch
         t0 = time.perf_counter()
+        every = max(1, int(self.get_parameter("log_every").value))
 
         def on_iteration(sw: Swarm) -> None:
             k = sw.gbest_x
             self.progress_pub.publish(Float64MultiArray(data=[
                 float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations),
                 time.perf_counter() - t0]))
-            log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
-                     f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")
+            if sw.iteration % every == 0 or sw.done:
+                log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
+                         f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")
             if session is not None:
                 session.record(sw)
 
