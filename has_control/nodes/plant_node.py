@@ -289,6 +289,7 @@ def main(args=None):
                 _log_finished(node)
                 node.run_seconds = 0.0
         if node.finished and not keep_alive:
+            node.wait_realtime(5.0)
             _log_finished(node)
     except KeyboardInterrupt:
         pass
@@ -304,3 +305,8 @@ def _log_finished(node: PlantNode) -> None:
         f"finished {node.sample} samples at t = {node.sample * node.step:.4f} s: "
         f"y = {node.x[0]:.9e} m, fail-safe events = {node.failsafe_events}, {rate:.0f} samples/s"
         + (" (diverged)" if node.diverged else ""))
+    st = node.realtime_stats
+    if st:
+        node.get_logger().info(
+            f"realtime: {st['rate_hz']:.0f} samples/s, jitter p50 {st['jitter_p50_us']:.1f} us, "
+            f"p99 {st['jitter_p99_us']:.1f} us, max {st['jitter_max_us']:.1f} us, {st['overruns']:.0f} overruns")
