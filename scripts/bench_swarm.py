@@ -1,0 +1,215 @@
+"""Optimiser validation: our three swarm variants against pyswarms, mealpy and SciPy DE.
+
+CEC-style protocol: shifted Sphere, Rosenbrock, Rastrigin, Ackley and Griewank
+(the optimum moved to a fixed random point inside 80 % of the box), budget
+10 000·D evaluations, error f(x) − f* at 1 %, 10 %, 50 % and 100 % of the
+budget, one run per seed. Three roles, one file:
+
+  --run ours   (project venv: has_control.swarm)            -> JSON lines
+  --run peers  (.venv-peers: pyswarms, mealpy, scipy)       -> JSON lines
+  --report DIR (project venv: tables, Wilcoxon rank-sum p)  -> DIR/report.md
+
+``scripts/bench_swarm`` runs all three. Peers are installed in their own venv
+(mealpy pins NumPy 1.x); they are never dependencies of has_control.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+PARTICLES = 80
+CHECKPOINTS = (0.01, 0.1, 0.5, 1.0)
+SUCCESS = 1e-8
+BOXES = {"sphere": 100.0, "rosenbrock": 30.0, "rastrigin": 5.12, "ackley": 32.0, "griewank": 600.0}
+
+
+def _base(name: str, z: np.ndarray) -> np.ndarray:
+    """Unshifted function of rows z (N, D); minimum 0 at z = 0 (Rosenbrock: z + 1)."""
+    if name == "sphere":
+        return np.sum(z * z, axis=1)
+    if name == "rosenbrock":
+        x = z + 1.0
+        return np.sum(100.0 * (x[:, 1:] - x[:, :-1] ** 2) ** 2 + (x[:, :-1] - 1.0) ** 2, axis=1)
+    if name == "rastrigin":
+        return 10.0 * z.shape[1] + np.sum(z * z - 10.0 * np.cos(2 * np.pi * z), axis=1)
+    if name == "ackley":
+        d = z.shape[1]
+        return (-20.0 * np.exp(-0.2 * np.sqrt(np.sum(z * z, axis=1) / d))
+                - np.exp(np.sum(np.cos(2 * np.pi * z), axis=1) / d) + 20.0 + math.e)
+    if name == "griewank":
+        i = np.sqrt(np.arange(1, z.shape[1] + 1))
+        return 1.0 + np.sum(z * z, axis=1) / 4000.0 - np.prod(np.cos(z / i), axis=1)
+    raise ValueError(name)
+
+
+class Problem:
+    """A shifted test function that counts evaluations and keeps best-so-far at checkpoints."""
+
+    def __init__(self, name: str, dim: int):
+        self.name, self.dim = name, dim
+        b = BOXES[name]
+        self.lower, self.upper = np.full(dim, -b), np.full(dim, b)
+        self.shift = np.random.default_rng(2024 + dim).uniform(-0.8 * b, 0.8 * b, dim)
+        self.budget = 10_000 * dim
+        self.marks = [int(c * self.budget) for c in CHECKPOINTS]
+        self.reset()
+
+    def reset(self) -> None:
+        self.count, self.best, self.at = 0, math.inf, {}
+        self.reached = None
+
+    def __call__(self, x) -> np.ndarray:
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        f = _base(self.name, x - self.shift)
+        for v in f:
+            if self.count >= self.budget:
+                break
+            self.count += 1
+            self.best = min(self.best, float(v))
+            if self.reached is None and self.best < SUCCESS:
+                self.reached = self.count
+            if self.count in self.marks:
+                self.at[self.count] = self.best
+        return f
+
+    def one(self, x) -> float:
+        return float(self(x)[0])
+
+    def errors(self) -> list[float]:
+        return [self.at.get(m, self.best) for m in self.marks]
+
+
+# --- runners ---------------------------------------------------------------------
+
+def run_ours(variant: str, p: Problem, seed: int) -> None:
+    from has_control.swarm import minimize
+    vmax = 0.2 * (p.upper[0] - p.lower[0])            # 20 % of the range, as SPEC's 15 of ~1000 is ~1.5 %
+    minimize(p, (p.lower, p.upper), variant=variant, n_particles=PARTICLES,
+             max_iter=p.budget // PARTICLES, seed=seed, velocity_limit=vmax, target=0.0)
+
+
+def run_pyswarms(p: Problem, seed: int) -> None:
+    import pyswarms as ps
+    np.random.seed(seed)
+    opt = ps.single.GlobalBestPSO(n_particles=PARTICLES, dimensions=p.dim,
+                                  options={"c1": 1.49445, "c2": 1.49445, "w": 0.729},
+                                  bounds=(p.lower, p.upper), bh_strategy="nearest")
+    opt.optimize(p, iters=p.budget // PARTICLES, verbose=False)
+
+
+def run_mealpy(kind: str, p: Problem, seed: int) -> None:
+    from mealpy import PSO, FloatVar
+    cls = {"LDW_PSO": PSO.LDW_PSO, "HPSO_TVAC": PSO.HPSO_TVAC}[kind]
+    model = cls(epoch=p.budget // PARTICLES - 1, pop_size=PARTICLES)
+    problem = {"obj_func": p.one, "bounds": FloatVar(lb=p.lower.tolist(), ub=p.upper.tolist()),
+               "minmax": "min", "log_to": None}
+    model.solve(problem, seed=seed)
+
+
+def run_de(p: Problem, seed: int) -> None:
+    from scipy.optimize import differential_evolution
+    popsize = max(1, PARTICLES // p.dim)
+    maxiter = p.budget // (popsize * p.dim) - 1
+    differential_evolution(lambda x: p.one(x), list(zip(p.lower, p.upper)), popsize=popsize,
+                           maxiter=maxiter, tol=0.0, polish=False, seed=seed)
+
+
+OURS = {"pso": lambda p, s: run_ours("pso", p, s), "pso-cp": lambda p, s: run_ours("pso-cp", p, s),
+        "pso-cp-tvac": lambda p, s: run_ours("pso-cp-tvac", p, s)}
+PEERS = {"pyswarms GlobalBestPSO": run_pyswarms,
+         "mealpy LDW_PSO": lambda p, s: run_mealpy("LDW_PSO", p, s),
+         "mealpy HPSO_TVAC": lambda p, s: run_mealpy("HPSO_TVAC", p, s),
+         "scipy differential_evolution": run_de}
+
+
+def run(group: dict, dims, seeds: int, functions) -> None:
+    for dim in dims:
+        for fn in functions:
+            p = Problem(fn, dim)
+            for name, runner in group.items():
+                for seed in range(1, seeds + 1):
+                    p.reset()
+                    t0 = time.perf_counter()
+                    runner(p, seed)
+                    print(json.dumps({"optimiser": name, "function": fn, "dim": dim, "seed": seed,
+                                      "errors": p.errors(), "reached": p.reached, "evaluations": p.count,
+                                      "seconds": time.perf_counter() - t0}), flush=True)
+
+
+# --- report ----------------------------------------------------------------------
+
+def report(directory: Path) -> Path:
+    from scipy.stats import ranksums
+    rows = [json.loads(line) for f in ("ours.jsonl", "peers.jsonl")
+            for line in (directory / f).read_text().splitlines() if line.strip()]
+    names = list(dict.fromkeys(r["optimiser"] for r in rows))
+    ours = [n for n in names if n in OURS]
+    peers = [n for n in names if n not in OURS]
+    seeds = max(r["seed"] for r in rows)
+    out = [f"# Swarm validation ({seeds} seeds, budget 10 000·D, {PARTICLES} particles / population)", "",
+           "Error f(x) − f* of the best found; success: error < 1e-8 (evaluations to reach it: mean over "
+           "successful runs). p: Wilcoxon rank-sum of final errors, each of our variants vs the peer; "
+           "'<' ours lower (better) median, '>' the peer's.", ""]
+    for dim in sorted({r["dim"] for r in rows}):
+        for fn in BOXES:
+            sel = [r for r in rows if r["dim"] == dim and r["function"] == fn]
+            if not sel:
+                continue
+            out += [f"## {fn}, D = {dim}", "",
+                    "| optimiser | mean | median | std | best | err@1% | err@10% | err@50% | success | evals to 1e-8 |",
+                    "|---|---|---|---|---|---|---|---|---|---|"]
+            final = {}
+            for n in names:
+                rs = [r for r in sel if r["optimiser"] == n]
+                if not rs:
+                    continue
+                e = np.array([r["errors"][-1] for r in rs])
+                final[n] = e
+                ok = [r["reached"] for r in rs if r["reached"] is not None]
+                mid = [np.median([r["errors"][i] for r in rs]) for i in range(3)]
+                out.append(f"| {n} | {e.mean():.3g} | {np.median(e):.3g} | {e.std():.3g} | {e.min():.3g} | "
+                           + " | ".join(f"{m:.3g}" for m in mid)
+                           + f" | {len(ok)}/{len(rs)} | {np.mean(ok):,.0f} |" if ok else
+                           f"| {n} | {e.mean():.3g} | {np.median(e):.3g} | {e.std():.3g} | {e.min():.3g} | "
+                           + " | ".join(f"{m:.3g}" for m in mid) + f" | 0/{len(rs)} | – |")
+            out += ["", "| ours vs peer | " + " | ".join(peers) + " |", "|---" * (len(peers) + 1) + "|"]
+            for o in ours:
+                cells = []
+                for q in peers:
+                    if o in final and q in final:
+                        pv = ranksums(final[o], final[q]).pvalue
+                        side = "<" if np.median(final[o]) < np.median(final[q]) else (
+                            ">" if np.median(final[o]) > np.median(final[q]) else "=")
+                        cells.append(f"{side} p = {pv:.2g}")
+                    else:
+                        cells.append("–")
+                out.append(f"| {o} | " + " | ".join(cells) + " |")
+            out.append("")
+    path = directory / "report.md"
+    path.write_text("\n".join(out) + "\n")
+    return path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", choices=("ours", "peers"))
+    ap.add_argument("--report", metavar="DIR")
+    ap.add_argument("--seeds", type=int, default=30)
+    ap.add_argument("--dims", type=int, nargs="+", default=[10, 30])
+    ap.add_argument("--functions", nargs="+", default=list(BOXES), choices=list(BOXES))
+    args = ap.parse_args(argv)
+    if args.report:
+        print(report(Path(args.report)))
+    elif args.run:
+        run(OURS if args.run == "ours" else PEERS, args.dims, args.seeds, args.functions)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
