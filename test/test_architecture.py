@@ -3,17 +3,24 @@ import subprocess
 import sys
 
 CORE = ["params", "config", "actuator", "reference", "abc_controller", "cost", "episode",
-        "swarm", "tuning", "baselines", "cli"]
+        "swarm", "tuning", "baselines", "cdr", "cli"]
+BAGS = ["bag", "session"]          # rosbags and MCAP, but no rclpy
+
+
+def _imported(modules, banned) -> str:
+    code = ("import sys\n"
+            + "".join(f"import has_control.{m}\n" for m in modules)
+            + f"bad = sorted(m for m in sys.modules if m.split('.')[0] in {banned!r})\n"
+            + "print(','.join(bad))")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
 
 
 def test_core_modules_import_no_ros():
-    code = ("import sys\n"
-            + "".join(f"import has_control.{m}\n" for m in CORE)
-            + "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
-              "('rclpy', 'rosbags', 'mcap', 'sensor_msgs', 'std_msgs', 'rosgraph_msgs'))\n"
-            + "print(','.join(bad))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == ""
+    assert _imported(CORE, ("rclpy", "rosbags", "mcap", "sensor_msgs", "std_msgs", "rosgraph_msgs")) == ""
+
+
+def test_bag_modules_import_no_rclpy():
+    assert _imported(BAGS, ("rclpy", "sensor_msgs", "std_msgs", "rosgraph_msgs")) == ""
 
 
 def test_editing_a_callee_module_recompiles_the_kernels(tmp_path):
