@@ -46,7 +46,6 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from ..bag import BagError, score_bag
-from ..config import build_config
 from ..errors import ConfigError, HasControlError
 from ..swarm import Swarm
 from ..tuning import Tuning, load_tuning, tune, tuning_from_parameters
@@ -193,6 +192,9 @@ class TunerNode(Node):
         except HasControlError as exc:
             self.error = str(exc)
             self.get_logger().error(self.error)
+        except Exception as exc:                 # a bug, not bad input: keep its type in the report
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.get_logger().error(f"tuning session failed: {self.error}")
         finally:
             self.done.set()
 
