@@ -202,11 +202,10 @@ class Bag:
         """The run's Config from the bag (else the shipped defaults, with a warning)."""
         from .config import build_config, load_config, read_parameter_files
         overrides = list(overrides)
-        base = load_config(overrides)
         stored = self.custom_data.get(PARAMETERS_KEY)
         if stored is None:
             warn(f"{self.path}: no {PARAMETERS_KEY} in the bag; scoring with the shipped configuration")
-            return base
+            return load_config(overrides)
         try:
             flat = json.loads(stored)
         except ValueError:

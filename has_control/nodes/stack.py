@@ -36,6 +36,12 @@ def _overrides(cfg: Config) -> list[Parameter]:
     return [Parameter(k, value=v) for k, v in config_parameters(cfg).items()]
 
 
+def _plant_parameters(params: list[Parameter]) -> list[Parameter]:
+    """The plant's share of a Config's parameters (actuator.*, simulation.*)."""
+    from .plant_node import PREFIXES
+    return [p for p in params if p.name.startswith(PREFIXES)]
+
+
 def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
               publish_internals: bool = False, args: list[str] | None = None,
               context: rclpy.Context | None = None, timeout: float = 600.0,
@@ -59,8 +65,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         params = _overrides(cfg)
         n = cfg.episode.samples
         plant = PlantNode(namespace=namespace, context=context,
-                          parameter_overrides=[p for p in params if p.name.startswith(("actuator.", "simulation."))]
-                          + [Parameter("samples", value=n)])
+                          parameter_overrides=_plant_parameters(params) + [Parameter("samples", value=n)])
         internals = publish_internals or record is not None
         controller = ControllerNode(namespace=namespace, context=context,
                                     parameter_overrides=params + [Parameter("publish_internals", value=internals)])
@@ -135,7 +140,6 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
     ``changes``: swarm settings (seed, particles, iterations, variant) over
     config/tuner.yaml and ``config_files``.
     """
-    from ..config import config_parameters
     from ..tuning import load_tuning
     from .tuner_node import TunerNode, tuning_parameters
     tuning = load_tuning(config_files).replace(**changes)
@@ -145,11 +149,10 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
         context = rclpy.Context()
         rclpy.init(context=context, domain_id=domain_id)
     try:
-        model = [Parameter(k, value=v) for k, v in config_parameters(cfg).items()]
+        model = _overrides(cfg)
         nodes = []
         for ns in namespaces:
-            nodes.append(PlantNode(namespace=ns, context=context, parameter_overrides=[
-                p for p in model if p.name.startswith(("actuator.", "simulation."))]))
+            nodes.append(PlantNode(namespace=ns, context=context, parameter_overrides=_plant_parameters(model)))
             nodes.append(ControllerNode(namespace=ns, context=context, parameter_overrides=model))
         tuner = TunerNode(context=context, parameter_overrides=model + [
             Parameter(k, value=v) for k, v in tuning_parameters(tuning).items()] + [
