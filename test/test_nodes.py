@@ -164,34 +164,53 @@ def test_killing_the_controller_mid_run_trips_the_fail_safe_and_a_restart_resume
         plant.destroy_node()
 
 
-def test_realtime_mode_holds_the_last_command_and_reports_diagnostics(context):
+def _realtime_run(context, failsafe_samples: int):
+    """A realtime plant fed one command (u = 1e-5 m) once: what it holds, and its reports.
+
+    The command comes from the test, not a controller, so the outcome does not
+    depend on how fast this machine answers."""
     from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import JointState
+    from has_control.nodes.messages import CONTROL_QOS
     ex = EventsExecutor(context=context)
     plant = PlantNode(context=context, parameter_overrides=[
         Parameter("mode", value="realtime"), Parameter("samples", value=4000),
-        Parameter("failsafe_samples", value=100_000)])      # never trips: this test is about the hold
-    controller = ControllerNode(context=context, parameter_overrides=[Parameter("publish_internals", value=False)])
-    listener = rclpy.create_node("diagnostics_listener", context=context)
+        Parameter("failsafe_samples", value=failsafe_samples)])
+    driver = rclpy.create_node("driver", context=context)
+    pub = driver.create_publisher(JointState, "command", CONTROL_QOS)
+    driver.create_subscription(JointState, "state", lambda m: None, CONTROL_QOS)
     reports = []
-    listener.create_subscription(DiagnosticArray, "/diagnostics", reports.append, 10)
-    for n in (plant, controller, listener):
+    driver.create_subscription(DiagnosticArray, "/diagnostics", reports.append, 10)
+    for n in (plant, driver):
         ex.add_node(n)
     plant.log = []
     assert _spin_until(ex, plant.connected, 10)
+    pub.publish(JointState(name=["valve"], position=[1e-5]))      # stamped sample 0, before the start
+    assert _spin_until(ex, lambda: plant._u_sample == 0, 10)
     plant.start()
     assert _spin_until(ex, lambda: plant.finished, 30)
     plant.wait_realtime(10)
     _spin_until(ex, lambda: False, 0.2)
-    stats = plant.realtime_stats
+    u = np.array([row[-1] for row in plant.log])
+    stats, events = plant.realtime_stats, plant.failsafe_events
+    ex.shutdown()
+    for n in (plant, driver):
+        n.destroy_node()
+    return u, stats, events, reports
+
+
+def test_realtime_mode_holds_the_last_command_and_reports_diagnostics(context):
+    u, stats, events, reports = _realtime_run(context, failsafe_samples=100_000)
+    assert np.all(u == 1e-5) and events == 0                # the one command, held every sample
     assert stats["samples"] == 4000 and set(stats) >= {"rate_hz", "jitter_p99_us", "overruns"}
     status = reports[-1].status[0]
     assert "realtime loop" in status.name and {kv.key for kv in status.values} >= {"rate_hz", "jitter_p99_us"}
-    u = np.array([row[-1] for row in plant.log])
-    first = int(np.flatnonzero(u)[0])                       # commands arrived ...
-    assert np.all(u[first:] != 0.0)                         # ... and the latest is held every sample
-    ex.shutdown()
-    for n in (plant, controller, listener):
-        n.destroy_node()
+
+
+def test_realtime_fail_safe_centres_the_valve_after_missing_samples(context):
+    u, stats, events, _ = _realtime_run(context, failsafe_samples=10)
+    assert np.all(u[:11] == 1e-5) and np.all(u[11:] == 0.0)  # samples 0..10 answered by it, then centred
+    assert events == 4000 - 11 and stats["failsafe_events"] == events
 
 
 def test_bad_plant_mode_is_rejected(context):
