@@ -11,15 +11,15 @@ import math
 
 from numba import njit
 
+from .jit import INLINE
 from .actuator import chamber_volumes, valve_drops
 from .params import (
     A1_MAX, A1_MIN, A2_MAX, A2_MIN, AREA_CAP, AREA_ROD, BULK, GRAVITY, MASS, SIGMA1, SIGMA2, VALVE_GAIN, X3D_BACKWARD, X3D_MODE,
 )
 
-_JIT = dict(cache=True, error_model="numpy", nogil=True)
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def projection(a_hat, tau, lower, upper):
     """Proj(â, τ) (paper Eq. 12): 0 if â ≥ upper and τ > 0, 0 if â ≤ lower and τ < 0, else τ."""
     if a_hat >= upper and tau > 0.0:
@@ -29,7 +29,7 @@ def projection(a_hat, tau, lower, upper):
     return tau
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def abc_law(x1, x2, p1, p2, a1_hat, a2_hat, x3d_prev, has_prev,
             r0, r1, r2, r3, k1, k2, k3, ap, cp, dt):
     """Valve command and internals at one sample.
@@ -79,7 +79,7 @@ def abc_law(x1, x2, p1, p2, a1_hat, a2_hat, x3d_prev, has_prev,
     return u, e1, e2, e3, rate1, rate2, x3d
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def adapt(a1_hat, a2_hat, rate1, rate2, cp, dt):
     """SPEC §5 step 5: â ← clip(â + Δt·Proj(â, τ), a_min, a_max)."""
     n1 = min(max(a1_hat + dt * rate1, cp[A1_MIN]), cp[A1_MAX])

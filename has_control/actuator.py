@@ -12,15 +12,15 @@ import math
 
 from numba import njit
 
+from .jit import INLINE
 from .params import (
     AREA_CAP, AREA_ROD, BULK, DAMPING, GRAVITY, LEAKAGE, MASS, P_RETURN, P_SUPPLY,
     V_CAP0, V_ROD0, VALVE_GAIN,
 )
 
-_JIT = dict(cache=True, error_model="numpy", nogil=True)
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def valve_flows(p1, p2, u, ap):
     """Servo-valve flows (q1 into the cap chamber, q2 out of the rod chamber) [m³/s].
 
@@ -32,7 +32,7 @@ def valve_flows(p1, p2, u, ap):
     return gu * math.sqrt(d1), gu * math.sqrt(d2)
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def valve_drops(p1, p2, opening, ap):
     """Pressure drops [Pa] across the two metering edges, floored at 0.
 
@@ -45,13 +45,13 @@ def valve_drops(p1, p2, opening, ap):
     return max(p1 - pr, 0.0), max(ps - p2, 0.0)
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def chamber_volumes(y, ap):
     """(V1, V2) [m³] at displacement y [m]: V01 + A1·y and V02 − A2·y."""
     return ap[V_CAP0] + ap[AREA_CAP] * y, ap[V_ROD0] - ap[AREA_ROD] * y
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def derivative(x1, x2, x3, x4, u, ap):
     """ẋ of the actuator (SPEC §2) at state (x1..x4) with valve command u."""
     a1 = ap[AREA_CAP]
@@ -67,7 +67,7 @@ def derivative(x1, x2, x3, x4, u, ap):
     return x2, dx2, dx3, dx4
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def rk4_step(x1, x2, x3, x4, u, ap, dt):
     """One classical Runge-Kutta step of length dt [s] with u held (zero-order hold)."""
     h2 = 0.5 * dt
@@ -82,7 +82,7 @@ def rk4_step(x1, x2, x3, x4, u, ap, dt):
             x4 + s * (a4 + 2.0 * b4 + 2.0 * c4 + d4))
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def plant_step(x1, x2, x3, x4, u, ap, dt):
     """SPEC §5 step 6: RK4 step, then P1, P2 clipped into [Pr, Ps]."""
     y, v, p1, p2 = rk4_step(x1, x2, x3, x4, u, ap, dt)
@@ -91,7 +91,7 @@ def plant_step(x1, x2, x3, x4, u, ap, dt):
     return y, v, min(max(p1, lo), hi), min(max(p2, lo), hi)
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def diverged(x1, x2, x3, x4, y_limit):
     """SPEC §5 step 7: a state that is not finite or |y| > y_limit [m]."""
     if not (math.isfinite(x1) and math.isfinite(x2) and math.isfinite(x3) and math.isfinite(x4)):

@@ -12,12 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from .jit import INLINE, KERNEL
 from .params import DT, LAMBDA1, LAMBDA2, LAMBDA3, WIN_END, WIN_START
 
-_JIT = dict(cache=True, error_model="numpy", nogil=True)
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def cost_increment(e1, u, ep):
     """(λ1|e1| + λ2·u² + λ3|e1|·[e1 < 0])·Δt for one sample."""
     ae = abs(e1)
@@ -27,7 +27,7 @@ def cost_increment(e1, u, ep):
     return c * ep[DT]
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def metric_update(count, mean, m2, peak, e1):
     """Welford update of count, mean and Σ(x − mean)² of |e1|, and its max."""
     x = abs(e1)
@@ -38,7 +38,7 @@ def metric_update(count, mean, m2, peak, e1):
     return count, mean, m2, max(peak, x)
 
 
-@njit(**_JIT)
+@njit(**INLINE)
 def metric_finish(count, mean, m2, peak):
     """(e_max, e_μ, e_σ) with the population standard deviation."""
     if count == 0.0:
@@ -46,7 +46,7 @@ def metric_finish(count, mean, m2, peak):
     return peak, mean, math.sqrt(m2 / count)
 
 
-@njit(**_JIT)
+@njit(**KERNEL)
 def score_series(e1, u, ep):
     """(J, e_max, e_μ, e_σ) of recorded e1 [m] and u [m] on the grid of ``ep``.
 

@@ -17,6 +17,7 @@ from numba import njit, prange
 from .abc_controller import abc_law, adapt
 from .actuator import diverged, plant_step
 from .cost import Score, cost_increment, metric_finish, metric_update
+from .jit import KERNEL
 from .params import (
     A1_INIT, A2_INIT, DT, N_SAMPLES, WIN_END, WIN_START, Y_LIMIT, Config, Gains,
 )
@@ -27,7 +28,6 @@ TRACE_COLUMNS = ("t", "x1d", "y", "ydot", "P1", "P2", "u", "e1", "e2", "e3", "a1
 _NCOL = len(TRACE_COLUMNS)
 
 
-_JIT = dict(cache=True, error_model="numpy", nogil=True)
 
 #: Most candidates advanced together in one block of the batch kernel.
 #: Independent candidates interleave in the CPU's pipelines (the RK4 chain of
@@ -35,7 +35,7 @@ _JIT = dict(cache=True, error_model="numpy", nogil=True)
 MAX_LANES = 16
 
 
-@njit(**_JIT)
+@njit(**KERNEL)
 def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
     """Run one episode; fill ``trace`` rows if it has any. Returns
     (J, e_max, e_μ, e_σ, samples, diverged)."""
@@ -89,7 +89,7 @@ def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
 _X1, _X2, _X3, _X4, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD = range(12)
 
 
-@njit(**_JIT)
+@njit(**KERNEL)
 def _block(gains, first, last, ap, cp, rp, ep, x0, out):
     """Episodes of candidates first..last-1 advanced sample by sample together.
 
@@ -163,7 +163,7 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
             out[p, 5] = 0.0
 
 
-@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
+@njit(**KERNEL, parallel=True)
 def _batch(gains, edges, ap, cp, rp, ep, x0, out):
     for b in prange(edges.shape[0] - 1):
         _block(gains, edges[b], edges[b + 1], ap, cp, rp, ep, x0, out)

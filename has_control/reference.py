@@ -9,13 +9,14 @@ import math
 
 from numba import njit
 
+from .jit import INLINE
 from .params import (
     REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE,
     REF_SINE, REF_STEP, REF_SWEEP, REF_T0,
 )
 
 
-@njit(cache=True, error_model="numpy", nogil=True)
+@njit(**INLINE)
 def reference(rp, t):
     """(x1d, ẋ1d, ẍ1d, x1d⁽³⁾) at time t [s] for the reference array rp."""
     kind = int(rp[REF_KIND])

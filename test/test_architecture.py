@@ -2,7 +2,7 @@
 import subprocess
 import sys
 
-CORE = ["params", "config", "actuator", "reference", "abc_controller", "cost", "episode",
+CORE = ["jit", "params", "config", "actuator", "reference", "abc_controller", "cost", "episode",
         "swarm", "tuning", "baselines", "cdr", "cli"]
 BAGS = ["bag", "session"]          # rosbags and MCAP, but no rclpy
 

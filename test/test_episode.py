@@ -76,3 +76,28 @@ def test_trace_columns_are_consistent():
     np.testing.assert_allclose(tr["t"], np.arange(33333) * 3e-4, rtol=0, atol=1e-12)
     np.testing.assert_allclose(tr["x1d"], 0.11 * np.sin(2 * tr["t"]), atol=1e-15)
     np.testing.assert_array_equal(tr["e1"], tr["x1d"] - tr["y"])
+
+
+def test_one_sample_step_compiles_to_one_function():
+    """The batch kernel's speed rests on numba inlining the step's functions
+    (``jit.INLINE``): LLVM alone leaves ``abc_law`` and ``rk4_step`` as calls.
+    Compiled fresh (the cached kernel carries no IR), no core call remains."""
+    import re
+
+    from numba import njit
+
+    from has_control import episode
+    from has_control.jit import KERNEL
+    fresh = njit(**dict(KERNEL, cache=False))(episode._block.py_func)
+    a = episode.EpisodeArrays.from_config(Config())
+    out = np.empty((1, 6))
+    fresh(np.array([[400.0, 400.0, 400.0]]), 0, 1, a.actuator, a.adaptation, a.reference,
+          a.episode, a.x0, out)
+    ir = next(iter(fresh.inspect_llvm().values()))
+    body = re.search(r"define [^\n]*_block[^\n]*\n(.*?)\n}\n", ir, re.S).group(1)
+    called = set(re.findall(r"call [^@]*@\"?([\w.$]+)", body))
+    core = ("abc_law", "adapt", "projection", "plant_step", "rk4_step", "derivative",
+            "valve_flows", "valve_drops", "chamber_volumes", "diverged", "reference",
+            "cost_increment", "metric_update")
+    assert not [c for c in called if any(f"{n}B" in c or c.endswith(n) for n in core)], called
+    assert out[0, 0] == evaluate(np.array([[400.0, 400.0, 400.0]]))[0]
