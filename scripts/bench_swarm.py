@@ -3,14 +3,21 @@
 CEC-style protocol: shifted Sphere, Rosenbrock, Rastrigin, Ackley and Griewank
 (the optimum moved to a fixed random point inside 80 % of the box), budget
 10 000·D evaluations, error f(x) − f* at 1 %, 10 %, 50 % and 100 % of the
-budget, one run per seed. Three roles, one file:
+budget, one run per seed. Also our own problem, ``abc``: the cost J of the
+ABC gains (k1, k2, k3) on the reference configuration, D = 3, at the paper's
+budget of 80 × 100 = 8 000 evaluations; its "error" is J itself (f* unknown).
+Three roles, one file:
 
   --run ours   (project venv: has_control.swarm)            -> JSON lines
   --run peers  (.venv-peers: pyswarms, mealpy, scipy)       -> JSON lines
+  --serve      (project venv: J of gain rows read from stdin; the peers'
+                venv has no numba, so ``abc`` is evaluated by this server)
   --report DIR (project venv: tables, Wilcoxon rank-sum p)  -> DIR/report.md
 
-``scripts/bench_swarm`` runs all three. Peers are installed in their own venv
-(mealpy pins NumPy 1.x); they are never dependencies of has_control.
+``--out FILE`` appends to FILE and skips the runs already in it, so a long
+protocol can be run in pieces and resumed. ``scripts/bench_swarm`` runs all
+roles. Peers are installed in their own venv (mealpy pins NumPy 1.x); they are
+never dependencies of has_control.
 """
 from __future__ import annotations
 
@@ -27,6 +34,9 @@ PARTICLES = 80
 CHECKPOINTS = (0.01, 0.1, 0.5, 1.0)
 SUCCESS = 1e-8
 BOXES = {"sphere": 100.0, "rosenbrock": 30.0, "rastrigin": 5.12, "ackley": 32.0, "griewank": 600.0}
+#: Our own problem: the paper's gain box and budget (SPEC §7 defaults).
+ABC_LOWER, ABC_UPPER = (150.0, 150.0, 150.0), (1200.0, 800.0, 800.0)
+ABC_BUDGET, ABC_VMAX = 80 * 100, 15.0
 
 
 def _base(name: str, z: np.ndarray) -> np.ndarray:
@@ -51,12 +61,16 @@ def _base(name: str, z: np.ndarray) -> np.ndarray:
 class Problem:
     """A shifted test function that counts evaluations and keeps best-so-far at checkpoints."""
 
-    def __init__(self, name: str, dim: int):
+    def __init__(self, name: str, dim: int, cost=None):
         self.name, self.dim = name, dim
-        b = BOXES[name]
-        self.lower, self.upper = np.full(dim, -b), np.full(dim, b)
-        self.shift = np.random.default_rng(2024 + dim).uniform(-0.8 * b, 0.8 * b, dim)
-        self.budget = 10_000 * dim
+        if name == "abc":
+            self.lower, self.upper = np.array(ABC_LOWER), np.array(ABC_UPPER)
+            self.budget, self.cost = ABC_BUDGET, cost
+        else:
+            b = BOXES[name]
+            self.lower, self.upper = np.full(dim, -b), np.full(dim, b)
+            self.shift = np.random.default_rng(2024 + dim).uniform(-0.8 * b, 0.8 * b, dim)
+            self.budget, self.cost = 10_000 * dim, lambda x: _base(name, x - self.shift)
         self.marks = [int(c * self.budget) for c in CHECKPOINTS]
         self.reset()
 
@@ -66,7 +80,7 @@ class Problem:
 
     def __call__(self, x) -> np.ndarray:
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
-        f = _base(self.name, x - self.shift)
+        f = self.cost(x)
         for v in f:
             if self.count >= self.budget:
                 break
@@ -89,7 +103,8 @@ class Problem:
 
 def run_ours(variant: str, p: Problem, seed: int) -> None:
     from has_control.swarm import minimize
-    vmax = 0.2 * (p.upper[0] - p.lower[0])            # 20 % of the range, as SPEC's 15 of ~1000 is ~1.5 %
+    # 20 % of the range on the test functions; SPEC's v_max on our own problem
+    vmax = ABC_VMAX if p.name == "abc" else 0.2 * (p.upper[0] - p.lower[0])
     minimize(p, (p.lower, p.upper), variant=variant, n_particles=PARTICLES,
              max_iter=p.budget // PARTICLES, seed=seed, velocity_limit=vmax, target=0.0)
 
@@ -128,18 +143,67 @@ PEERS = {"pyswarms GlobalBestPSO": run_pyswarms,
          "scipy differential_evolution": run_de}
 
 
-def run(group: dict, dims, seeds: int, functions) -> None:
-    for dim in dims:
-        for fn in functions:
-            p = Problem(fn, dim)
-            for name, runner in group.items():
-                for seed in range(1, seeds + 1):
-                    p.reset()
-                    t0 = time.perf_counter()
-                    runner(p, seed)
-                    print(json.dumps({"optimiser": name, "function": fn, "dim": dim, "seed": seed,
-                                      "errors": p.errors(), "reached": p.reached, "evaluations": p.count,
-                                      "seconds": time.perf_counter() - t0}), flush=True)
+def abc_cost_local():
+    """J of gain rows (N, 3) with the batch evaluator (project venv)."""
+    from has_control.episode import evaluate
+    return lambda k: evaluate(k)
+
+
+class AbcClient:
+    """J of gain rows (N, 3) from a ``--serve`` process in the project venv."""
+
+    def __init__(self, python: str):
+        import subprocess
+        self.proc = subprocess.Popen([python, __file__, "--serve"], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE)
+
+    def __call__(self, k: np.ndarray) -> np.ndarray:
+        k = np.ascontiguousarray(k, dtype=np.float64)
+        self.proc.stdin.write(np.int64(k.shape[0]).tobytes() + k.tobytes())
+        self.proc.stdin.flush()
+        return np.frombuffer(self.proc.stdout.read(8 * k.shape[0]), dtype=np.float64).copy()
+
+
+def serve() -> int:
+    """Read (int64 n, n×3 float64) requests from stdin; write n float64 costs J."""
+    cost = abc_cost_local()
+    cin, cout = sys.stdin.buffer, sys.stdout.buffer
+    while len(head := cin.read(8)) == 8:
+        n = int(np.frombuffer(head, dtype=np.int64)[0])
+        k = np.frombuffer(cin.read(24 * n), dtype=np.float64).reshape(n, 3)
+        cout.write(np.asarray(cost(k), dtype=np.float64).tobytes())
+        cout.flush()
+    return 0
+
+
+def _done(out: Path | None) -> set:
+    if out is None or not out.exists():
+        return set()
+    rows = [json.loads(line) for line in out.read_text().splitlines() if line.strip()]
+    return {(r["optimiser"], r["function"], r["dim"], r["seed"]) for r in rows}
+
+
+def run(group: dict, dims, seeds: int, functions, out: Path | None, abc_python: str | None) -> None:
+    done = _done(out)
+    sink = out.open("a") if out else sys.stdout
+    cases = [(fn, 3) for fn in functions if fn == "abc"] + [
+        (fn, d) for d in dims for fn in functions if fn != "abc"]
+    for fn, dim in cases:
+        cost = None
+        if fn == "abc":
+            cost = AbcClient(abc_python) if abc_python else abc_cost_local()
+        p = Problem(fn, dim, cost)
+        for name, runner in group.items():
+            for seed in range(1, seeds + 1):
+                if (name, fn, dim, seed) in done:
+                    continue
+                p.reset()
+                t0 = time.perf_counter()
+                runner(p, seed)
+                sink.write(json.dumps({"optimiser": name, "function": fn, "dim": dim, "seed": seed,
+                                       "errors": p.errors(), "reached": p.reached, "evaluations": p.count,
+                                       "seconds": time.perf_counter() - t0}) + "\n")
+                sink.flush()
 
 
 # --- report ----------------------------------------------------------------------
@@ -151,46 +215,48 @@ def report(directory: Path) -> Path:
     names = list(dict.fromkeys(r["optimiser"] for r in rows))
     ours = [n for n in names if n in OURS]
     peers = [n for n in names if n not in OURS]
-    seeds = max(r["seed"] for r in rows)
-    out = [f"# Swarm validation ({seeds} seeds, budget 10 000·D, {PARTICLES} particles / population)", "",
-           "Error f(x) − f* of the best found; success: error < 1e-8 (evaluations to reach it: mean over "
-           "successful runs). p: Wilcoxon rank-sum of final errors, each of our variants vs the peer; "
-           "'<' ours lower (better) median, '>' the peer's.", ""]
-    for dim in sorted({r["dim"] for r in rows}):
-        for fn in BOXES:
-            sel = [r for r in rows if r["dim"] == dim and r["function"] == fn]
-            if not sel:
+    out = [f"# Swarm validation (budget 10 000·D, {PARTICLES} particles / population)", "",
+           "Error f(x) − f* of the best found; n: runs (seeds 1..n); success: error < 1e-8 (evaluations "
+           "to reach it: mean over successful runs). p: Wilcoxon rank-sum of final errors, each of our "
+           "variants vs the peer; '<' ours lower (better) median, '>' the peer's.", ""]
+    cases = [("abc", 3)] + [(fn, d) for d in sorted({r["dim"] for r in rows}) for fn in BOXES]
+    for fn, dim in cases:
+        sel = [r for r in rows if r["dim"] == dim and r["function"] == fn]
+        if not sel:
+            continue
+        title = (f"## Our problem: J of the ABC gains, D = 3, {ABC_BUDGET:,} evaluations "
+                 "(the paper's budget; 'error' is J itself)" if fn == "abc" else f"## {fn}, D = {dim}")
+        out += [title, "",
+                "| optimiser | n | mean | median | std | best | err@1% | err@10% | err@50% | success "
+                "| evals to 1e-8 |",
+                "|---|---|---|---|---|---|---|---|---|---|---|"]
+        final = {}
+        for n in names:
+            rs = [r for r in sel if r["optimiser"] == n]
+            if not rs:
                 continue
-            out += [f"## {fn}, D = {dim}", "",
-                    "| optimiser | mean | median | std | best | err@1% | err@10% | err@50% | success | evals to 1e-8 |",
-                    "|---|---|---|---|---|---|---|---|---|---|"]
-            final = {}
-            for n in names:
-                rs = [r for r in sel if r["optimiser"] == n]
-                if not rs:
-                    continue
-                e = np.array([r["errors"][-1] for r in rs])
-                final[n] = e
-                ok = [r["reached"] for r in rs if r["reached"] is not None]
-                mid = [np.median([r["errors"][i] for r in rs]) for i in range(3)]
-                out.append(f"| {n} | {e.mean():.3g} | {np.median(e):.3g} | {e.std():.3g} | {e.min():.3g} | "
-                           + " | ".join(f"{m:.3g}" for m in mid)
-                           + f" | {len(ok)}/{len(rs)} | {np.mean(ok):,.0f} |" if ok else
-                           f"| {n} | {e.mean():.3g} | {np.median(e):.3g} | {e.std():.3g} | {e.min():.3g} | "
-                           + " | ".join(f"{m:.3g}" for m in mid) + f" | 0/{len(rs)} | – |")
-            out += ["", "| ours vs peer | " + " | ".join(peers) + " |", "|---" * (len(peers) + 1) + "|"]
-            for o in ours:
-                cells = []
-                for q in peers:
-                    if o in final and q in final:
-                        pv = ranksums(final[o], final[q]).pvalue
-                        side = "<" if np.median(final[o]) < np.median(final[q]) else (
-                            ">" if np.median(final[o]) > np.median(final[q]) else "=")
-                        cells.append(f"{side} p = {pv:.2g}")
-                    else:
-                        cells.append("–")
-                out.append(f"| {o} | " + " | ".join(cells) + " |")
-            out.append("")
+            e = np.array([r["errors"][-1] for r in rs])
+            final[n] = e
+            ok = [r["reached"] for r in rs if r["reached"] is not None]
+            mid = [np.median([r["errors"][i] for r in rs]) for i in range(3)]
+            fmt = ".5g" if fn == "abc" else ".3g"
+            succ = f"{len(ok)}/{len(rs)} | {np.mean(ok):,.0f}" if ok else f"0/{len(rs)} | –"
+            out.append(f"| {n} | {len(rs)} | " + " | ".join(
+                format(v, fmt) for v in (e.mean(), np.median(e), e.std(), e.min(), *mid))
+                + f" | {succ} |")
+        out += ["", "| ours vs peer | " + " | ".join(peers) + " |", "|---" * (len(peers) + 1) + "|"]
+        for o in ours:
+            cells = []
+            for q in peers:
+                if o in final and q in final:
+                    pv = ranksums(final[o], final[q]).pvalue
+                    side = "<" if np.median(final[o]) < np.median(final[q]) else (
+                        ">" if np.median(final[o]) > np.median(final[q]) else "=")
+                    cells.append(f"{side} p = {pv:.2g}")
+                else:
+                    cells.append("–")
+            out.append(f"| {o} | " + " | ".join(cells) + " |")
+        out.append("")
     path = directory / "report.md"
     path.write_text("\n".join(out) + "\n")
     return path
@@ -202,12 +268,28 @@ def main(argv=None) -> int:
     ap.add_argument("--report", metavar="DIR")
     ap.add_argument("--seeds", type=int, default=30)
     ap.add_argument("--dims", type=int, nargs="+", default=[10, 30])
-    ap.add_argument("--functions", nargs="+", default=list(BOXES), choices=list(BOXES))
+    ap.add_argument("--functions", nargs="+", default=list(BOXES) + ["abc"],
+                    choices=list(BOXES) + ["abc"])
+    ap.add_argument("--optimisers", nargs="+", metavar="NAME",
+                    help="a subset of the group's optimisers (names as in the report)")
+    ap.add_argument("--out", metavar="FILE", help="append JSON lines here, skipping runs already in it")
+    ap.add_argument("--abc-python", metavar="PYTHON",
+                    help="project venv's python, to serve J for 'abc' to the peers' venv")
+    ap.add_argument("--serve", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.serve:
+        return serve()
     if args.report:
         print(report(Path(args.report)))
     elif args.run:
-        run(OURS if args.run == "ours" else PEERS, args.dims, args.seeds, args.functions)
+        group = OURS if args.run == "ours" else PEERS
+        if args.optimisers:
+            unknown = [n for n in args.optimisers if n not in group]
+            if unknown:
+                ap.error(f"--optimisers: unknown {unknown[0]!r}; {args.run}: {', '.join(group)}")
+            group = {n: group[n] for n in args.optimisers}
+        run(group, args.dims, args.seeds, args.functions,
+            Path(args.out) if args.out else None, args.abc_python)
     return 0
 
 
