@@ -101,6 +101,22 @@ def bench_optimiser(iterations: int = 20) -> dict:
             "optimiser_share": (res.seconds - spent[0]) / res.seconds}
 
 
+def bench_paper(seed: int = 1) -> dict:
+    """The paper experiment for one seed, run for real: three variants, 80
+    particles, 100 iterations, one 10 s episode per candidate (24 000)."""
+    from .swarm import VARIANTS
+    from .tuning import Tuning, tune
+    cfg = Config()
+    evaluate(np.array([[400.0, 400.0, 400.0]]), cfg)     # compile / load the cache
+    runs = {}
+    t0 = time.perf_counter()
+    for variant in VARIANTS:
+        res = tune(cfg, Tuning(seed=seed).replace(variant=variant))
+        runs[variant] = {"seconds": res.seconds, "evaluations": res.result.nfev, "J": res.result.fun}
+    return {"seconds": time.perf_counter() - t0, "episodes": sum(r["evaluations"] for r in runs.values()),
+            "runs": runs}
+
+
 def bench_recording(duration: float = 3.0) -> dict:
     """Lock-step with and without the MCAP recorder; scoring a 10 s bag."""
     import os
@@ -163,7 +179,16 @@ def bench_realtime(duration: float = 3.0) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="scripts/bench", description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--paper", action="store_true",
+                    help="run only the paper experiment for one seed, for real (about a minute)")
     args = ap.parse_args(argv)
+    if args.paper:
+        r = bench_paper()
+        print(f"paper experiment, seed 1, run for real: {r['episodes']:,} episodes of 10 s in "
+              f"{r['seconds']:.1f} s wall on {numba.get_num_threads()} cores")
+        for v, run in r["runs"].items():
+            print(f"  {v}: {run['seconds']:.1f} s, {run['evaluations']:,} episodes, J = {run['J']:.6e}")
+        return 0
     r = bench_evaluator(repeats=args.repeats)
     print(f"batch evaluator: {r['particles']} random gain sets x {r['samples']} samples "
           f"(10 s episodes) on {r['cores']} cores: {r['batch_seconds']:.3f} s "
