@@ -210,8 +210,12 @@ def run(group: dict, dims, seeds: int, functions, out: Path | None, abc_python: 
 
 def report(directory: Path) -> Path:
     from scipy.stats import ranksums
-    rows = [json.loads(line) for f in ("ours.jsonl", "peers.jsonl")
+    rows = [json.loads(line) for f in ("ours.jsonl", "peers.jsonl") if (directory / f).exists()
             for line in (directory / f).read_text().splitlines() if line.strip()]
+    unique = {}
+    for r in rows:                          # pieces run in parallel may repeat a run
+        unique.setdefault((r["optimiser"], r["function"], r["dim"], r["seed"]), r)
+    rows = list(unique.values())
     names = list(dict.fromkeys(r["optimiser"] for r in rows))
     ours = [n for n in names if n in OURS]
     peers = [n for n in names if n not in OURS]
