@@ -109,3 +109,28 @@ def test_invalid_settings_are_rejected_in_one_line(kwargs, culprit):
     with pytest.raises(SwarmError) as info:
         minimize(sphere, bounds, **kwargs)
     assert culprit in str(info.value) and "\n" not in str(info.value)
+
+
+def test_bench_swarm_protocol_runs_resumes_and_reports(tmp_path):
+    """scripts/bench_swarm.py in small: a run appends JSON lines, a second run
+    with the same settings adds nothing, and the report has the table."""
+    import subprocess
+    import sys
+    from pathlib import Path
+    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_swarm.py"
+    out = tmp_path / "ours.jsonl"
+    run = [sys.executable, str(script), "--run", "ours", "--functions", "sphere", "rastrigin",
+           "--dims", "2", "--seeds", "2", "--optimisers", "pso", "--out", str(out)]
+    subprocess.run(run, check=True, capture_output=True)
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(rows) == 4 and {r["evaluations"] for r in rows} == {20_000}
+    # a CEC-style checkpoint never gets worse as the budget grows
+    assert all(r["errors"] == sorted(r["errors"], reverse=True) for r in rows)
+    subprocess.run(run, check=True, capture_output=True)
+    assert len(out.read_text().splitlines()) == 4
+    bad = subprocess.run(run[:-4] + ["--optimisers", "nope"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "unknown 'nope'" in bad.stderr
+    subprocess.run([sys.executable, str(script), "--report", str(tmp_path)], check=True,
+                   capture_output=True)
+    report = (tmp_path / "report.md").read_text()
+    assert "## sphere, D = 2" in report and "| pso | 2 |" in report
