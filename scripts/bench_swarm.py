@@ -224,6 +224,18 @@ def report(directory: Path) -> Path:
            "to reach it: mean over successful runs). p: Wilcoxon rank-sum of final errors, each of our "
            "variants vs the peer; '<' ours lower (better) median, '>' the peer's.", ""]
     cases = [("abc", 3)] + [(fn, d) for d in sorted({r["dim"] for r in rows}) for fn in BOXES]
+    cases = [c for c in cases if any(r["function"] == c[0] and r["dim"] == c[1] for r in rows)]
+    out += ["## Summary: median final error (runs)", "",
+            "| optimiser | " + " | ".join("ABC J" if fn == "abc" else f"{fn}-{d}" for fn, d in cases) + " |",
+            "|---" * (len(cases) + 1) + "|"]
+    for n in names:
+        cells = []
+        for fn, dim in cases:
+            e = [r["errors"][-1] for r in rows
+                 if r["optimiser"] == n and r["function"] == fn and r["dim"] == dim]
+            cells.append(f"{np.median(e):{'.5g' if fn == 'abc' else '.3g'}} ({len(e)})" if e else "–")
+        out.append(f"| {n} | " + " | ".join(cells) + " |")
+    out.append("")
     for fn, dim in cases:
         sel = [r for r in rows if r["dim"] == dim and r["function"] == fn]
         if not sel:
