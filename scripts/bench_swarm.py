@@ -146,7 +146,7 @@ PEERS = {"pyswarms GlobalBestPSO": run_pyswarms,
 def abc_cost_local():
     """J of gain rows (N, 3) with the batch evaluator (project venv)."""
     from has_control.episode import evaluate
-    return lambda k: evaluate(k)
+    return evaluate
 
 
 class AbcClient:
@@ -176,15 +176,25 @@ def serve() -> int:
     return 0
 
 
-def _done(out: Path | None) -> set:
-    if out is None or not out.exists():
-        return set()
-    rows = [json.loads(line) for line in out.read_text().splitlines() if line.strip()]
-    return {(r["optimiser"], r["function"], r["dim"], r["seed"]) for r in rows}
+def _key(r: dict) -> tuple:
+    """What makes one run: optimiser, function, dimension and seed."""
+    return r["optimiser"], r["function"], r["dim"], r["seed"]
+
+
+def _read_runs(*paths: Path) -> list[dict]:
+    """Runs in JSON-lines files (missing files: none), first of each key kept."""
+    unique = {}
+    for path in paths:
+        if path.exists():
+            for line in path.read_text().splitlines():
+                if line.strip():
+                    r = json.loads(line)
+                    unique.setdefault(_key(r), r)   # pieces run in parallel may repeat a run
+    return list(unique.values())
 
 
 def run(group: dict, dims, seeds: int, functions, out: Path | None, abc_python: str | None) -> None:
-    done = _done(out)
+    done = {_key(r) for r in _read_runs(out)} if out else set()
     sink = out.open("a") if out else sys.stdout
     cases = [(fn, 3) for fn in functions if fn == "abc"] + [
         (fn, d) for d in dims for fn in functions if fn != "abc"]
@@ -210,12 +220,7 @@ def run(group: dict, dims, seeds: int, functions, out: Path | None, abc_python: 
 
 def report(directory: Path) -> Path:
     from scipy.stats import ranksums
-    rows = [json.loads(line) for f in ("ours.jsonl", "peers.jsonl") if (directory / f).exists()
-            for line in (directory / f).read_text().splitlines() if line.strip()]
-    unique = {}
-    for r in rows:                          # pieces run in parallel may repeat a run
-        unique.setdefault((r["optimiser"], r["function"], r["dim"], r["seed"]), r)
-    rows = list(unique.values())
+    rows = _read_runs(directory / "ours.jsonl", directory / "peers.jsonl")
     names = list(dict.fromkeys(r["optimiser"] for r in rows))
     ours = [n for n in names if n in OURS]
     peers = [n for n in names if n not in OURS]
