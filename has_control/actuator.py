@@ -19,7 +19,6 @@ from .params import (
 )
 
 
-
 @njit(**INLINE)
 def valve_flows(p1, p2, u, ap):
     """Servo-valve flows (q1 into the cap chamber, q2 out of the rod chamber) [m³/s].
@@ -49,6 +48,18 @@ def valve_drops(p1, p2, opening, ap):
 def chamber_volumes(y, ap):
     """(V1, V2) [m³] at displacement y [m]: V01 + A1·y and V02 − A2·y."""
     return ap[V_CAP0] + ap[AREA_CAP] * y, ap[V_ROD0] - ap[AREA_ROD] * y
+
+
+@njit(**INLINE)
+def joint_state(y, v, p1, p2, ap):
+    """The state in the bond-graph reading of sensor_msgs/JointState (see
+    :mod:`has_control.topics`): position (y [m], V1, V2 [m³]), velocity
+    (ẏ [m/s], V̇1 = A1·ẏ, V̇2 = −A2·ẏ [m³/s]), effort (F = A1·P1 − A2·P2 [N],
+    P1, P2 [Pa]), as nine values in that order. Scalars or arrays."""
+    v1, v2 = chamber_volumes(y, ap)
+    a1 = ap[AREA_CAP]
+    a2 = ap[AREA_ROD]
+    return y, v1, v2, v, a1 * v, -a2 * v, a1 * p1 - a2 * p2, p1, p2
 
 
 @njit(**INLINE)

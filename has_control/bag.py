@@ -27,22 +27,13 @@ import yaml
 
 from . import cdr
 from .errors import HasControlError
+from .topics import (  # noqa: F401  (re-exported: the bag code's vocabulary)
+    CLOCK, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
+    REFERENCE, RUN_TOPICS, STATE, STATE_NAMES, STRING,
+)
 
 MAGIC = b"\x89MCAP0\r\n"
 PARAMETERS_KEY = "has_control/parameters"
-
-JOINT_STATE = "sensor_msgs/msg/JointState"
-CLOCK = "rosgraph_msgs/msg/Clock"
-FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
-STRING = "std_msgs/msg/String"
-
-#: Topics of a recorded run, relative to the run's namespace.
-STATE, COMMAND, CLOCK_TOPIC = "state", "command", "clock"
-REFERENCE, CONTROLLER_STATE, GAINS = "controller/reference", "controller/controller_state", "controller/gains"
-STATE_NAMES = ["actuator", "chamber_1", "chamber_2"]
-COMMAND_NAMES = ["valve"]
-RUN_TOPICS = {STATE: JOINT_STATE, COMMAND: JOINT_STATE, CLOCK_TOPIC: CLOCK,
-              REFERENCE: FLOAT64_ARRAY, CONTROLLER_STATE: FLOAT64_ARRAY, GAINS: FLOAT64_ARRAY}
 
 
 class BagError(HasControlError):
@@ -107,6 +98,12 @@ class BagWriter:
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
         self._writer.write(self._connections[topic], int(log_time_ns), data)
         self.counts[topic] += 1
+
+    def write_batches(self, batches: dict[str, tuple[np.ndarray, list[bytes]]]) -> None:
+        """Several topics' messages at once: ``{topic: (log times [ns], messages)}``."""
+        for topic, (times, datas) in batches.items():
+            for t, d in zip(times, datas):
+                self.write(topic, int(t), d)
 
     def write_message(self, topic: str, log_time_ns: int, msg, msgtype: str) -> None:
         self.write(topic, log_time_ns, bytes(typestore().serialize_cdr(msg, msgtype)))

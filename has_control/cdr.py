@@ -136,11 +136,17 @@ def first_float64(data: bytes) -> float:
 # --- encoding, column-wise (the inverse of the readers above) -----------------
 
 class _Builder:
+    """Builds one message; ``padding`` lists the alignment bytes it inserted
+    (zeros here; rclpy leaves them uninitialised)."""
+
     def __init__(self):
         self.buf = bytearray(CDR_LE + b"\x00\x00")
+        self.padding: list[int] = []
 
     def align(self, n: int) -> None:
-        self.buf += b"\x00" * ((-(len(self.buf) - 4)) % n)
+        pad = (-(len(self.buf) - 4)) % n
+        self.padding.extend(range(len(self.buf), len(self.buf) + pad))
+        self.buf += b"\x00" * pad
 
     def u32(self, v: int) -> None:
         self.align(4)
@@ -175,16 +181,30 @@ def _put_stamps(raw: np.ndarray, stamps_ns: np.ndarray) -> None:
     raw[:, 8:12] = (ns % 1_000_000_000).astype("<u4").view(np.uint8).reshape(-1, 4)
 
 
-def encode_joint_states(stamps_ns, names: list[str], position, velocity=None, effort=None) -> list[bytes]:
-    """sensor_msgs/JointState CDR messages, one per row of the (n, joints) arrays."""
-    n, k = len(stamps_ns), len(names)
+def joint_state_template(names: list[str], lengths: tuple[int, int, int]) -> tuple[_Builder, list[int]]:
+    """One sensor_msgs/JointState with zero stamp and values (``frame_id`` empty),
+    and the offsets of its position, velocity and effort data."""
     b = _Builder()
     b.buf += b"\x00" * 8
     b.string("")
-    b.u32(k)
+    b.u32(len(names))
     for name in names:
         b.string(name)
-    offsets = [b.float64_sequence(k if a is not None else 0) for a in (position, velocity, effort)]
+    return b, [b.float64_sequence(n) for n in lengths]
+
+
+def float64_array_template(n: int) -> tuple[_Builder, int]:
+    """One std_msgs/Float64MultiArray (no layout dims) of ``n`` zeros, and the offset of its data."""
+    b = _Builder()
+    b.u32(0)                         # layout.dim[]
+    b.u32(0)                         # layout.data_offset
+    return b, b.float64_sequence(n)
+
+
+def encode_joint_states(stamps_ns, names: list[str], position, velocity=None, effort=None) -> list[bytes]:
+    """sensor_msgs/JointState CDR messages, one per row of the (n, joints) arrays."""
+    n, k = len(stamps_ns), len(names)
+    b, offsets = joint_state_template(names, tuple(k if a is not None else 0 for a in (position, velocity, effort)))
     raw = _rows(bytes(b.buf), n)
     _put_stamps(raw, stamps_ns)
     for off, a in zip(offsets, (position, velocity, effort)):
@@ -196,10 +216,7 @@ def encode_joint_states(stamps_ns, names: list[str], position, velocity=None, ef
 def encode_float64_arrays(rows) -> list[bytes]:
     """std_msgs/Float64MultiArray CDR messages (no layout dims), one per row."""
     rows = np.asarray(rows, dtype=np.float64)
-    b = _Builder()
-    b.u32(0)                         # layout.dim[]
-    b.u32(0)                         # layout.data_offset
-    off = b.float64_sequence(rows.shape[1])
+    b, off = float64_array_template(rows.shape[1])
     raw = _rows(bytes(b.buf), len(rows))
     _put(raw, off, rows)
     return [r.tobytes() for r in raw]

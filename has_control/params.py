@@ -74,16 +74,6 @@ class Actuator:
         p1 = (self.mass * self.gravity + self.area_rod * p2) / self.area_cap
         return np.array([0.0, 0.0, p1, p2])
 
-    def joint_state(self, y, v, p1, p2):
-        """The state in the bond-graph reading of sensor_msgs/JointState, for
-        joints (actuator, chamber_1, chamber_2): position (y [m], V1, V2 [m³]),
-        velocity (ẏ [m/s], V̇1 = A1·ẏ, V̇2 = −A2·ẏ [m³/s]), effort
-        (F = A1·P1 − A2·P2 [N], P1, P2 [Pa]). Scalars or arrays."""
-        position = (y, self.volume_cap0 + self.area_cap * y, self.volume_rod0 - self.area_rod * y)
-        velocity = (v, self.area_cap * v, -self.area_rod * v)
-        effort = (self.area_cap * p1 - self.area_rod * p2, p1, p2)
-        return position, velocity, effort
-
     def as_array(self) -> np.ndarray:
         return np.array([
             self.mass, self.area_cap, self.area_rod, self.bulk_modulus, self.damping,

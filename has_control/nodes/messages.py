@@ -1,18 +1,7 @@
-"""Standard messages of the control loop, and the QoS they travel with.
+"""The control loop's QoS and the small message helpers the nodes share.
 
-State, ``sensor_msgs/JointState`` in the bond-graph reading (a hydraulic
-port's effort is pressure, its displacement is volume):
-
-=========  ================  =====================  =================
-name       position          velocity               effort
-=========  ================  =====================  =================
-actuator   y [m]             ẏ [m/s]                F = A1·P1 − A2·P2 [N]
-chamber_1  V1 [m³]           V̇1 = A1·ẏ [m³/s]       P1 [Pa]
-chamber_2  V2 [m³]           V̇2 = −A2·ẏ [m³/s]      P2 [Pa]
-=========  ================  =====================  =================
-
-Command, ``sensor_msgs/JointState``: name ``[valve]``, position ``[u]``
-(spool displacement [m]), stamped with the state it answers.
+Names, types, joints and wire layouts of the topics are in
+:mod:`has_control.topics`.
 """
 from __future__ import annotations
 
@@ -20,9 +9,9 @@ from builtin_interfaces.msg import Time
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
+from ..actuator import joint_state
 from ..params import Actuator
-
-from ..bag import COMMAND_NAMES, STATE_NAMES
+from ..topics import STATE_NAMES
 
 #: The control loop: reliable (lock-step must not lose a sample), keep last 1
 #: (a stale sample is never worth delivering), volatile (no late-joiner replay).
@@ -48,25 +37,39 @@ def sample_of(t: Time, step_ns: int) -> int:
 
 
 def state_message(sample: int, step_ns: int, x, a: Actuator) -> JointState:
-    position, velocity, effort = a.joint_state(*(float(s) for s in x))
+    """The state message of sample ``sample`` as a message object (the nodes
+    publish the same bytes from :mod:`has_control.loop`)."""
+    values = [float(v) for v in joint_state(*(float(s) for s in x), a.as_array())]
     msg = JointState()
     msg.header.stamp = stamp(sample, step_ns)
     msg.name = STATE_NAMES
-    msg.position, msg.velocity, msg.effort = list(position), list(velocity), list(effort)
+    msg.position, msg.velocity, msg.effort = values[0:3], values[3:6], values[6:9]
     return msg
 
 
-def state_of(msg: JointState) -> tuple[float, float, float, float]:
-    """(y, ẏ, P1, P2) of a state message."""
-    return msg.position[0], msg.velocity[0], msg.effort[1], msg.effort[2]
+def raw_publish(publisher, tap=None):
+    """A function that publishes serialized bytes (``publish(bytes)``) on
+    ``publisher`` and hands them to ``tap(topic, data)``, an in-process
+    observer such as the recorder, if one is given."""
+    publish = publisher.publish
+    if tap is None:
+        return publish
+    topic = publisher.topic_name
+
+    def publish_and_tap(data: bytes) -> None:
+        publish(data)
+        tap(topic, data)
+    return publish_and_tap
 
 
-def command_message(answers: JointState, u: float) -> JointState:
-    msg = JointState()
-    msg.header.stamp = answers.header.stamp
-    msg.name = COMMAND_NAMES
-    msg.position = [float(u)]
-    return msg
+def spin(executor, done=lambda: False, period: float = 0.1) -> None:
+    """Serve ``executor`` until ``done()`` or shutdown (Ctrl-C, SIGTERM).
+
+    rclpy 9.1's ``EventsExecutor.spin()`` busy-loops at full CPU and does not
+    return on a signal here; ``spin_once`` with a timeout does neither."""
+    import rclpy
+    while rclpy.ok(context=executor.context) and not done():
+        executor.spin_once(timeout_sec=period)
 
 
 def trigger_service(node, name: str, action, message: str):

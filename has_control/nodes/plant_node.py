@@ -1,47 +1,58 @@
 """The plant node: simulates the actuator at one 0.3 ms step per sample.
 
-Every step calls :func:`has_control.actuator.plant_step`, the one
-implementation, so a run through the graph equals the in-process trace.
+Every step is one compiled call (:func:`has_control.loop.plant_sample`) of
+the one implementation, :func:`has_control.actuator.plant_step`, that also
+encodes the new state; commands are taken as serialized bytes and decoded by
+compiled code (:func:`has_control.loop.command_of`). So a run through the
+graph equals the in-process trace, bit for bit.
 
 ``mode: lockstep`` (default): publish state i, wait for command i, advance,
-publish state i + 1. If no command arrives within ``command_timeout`` seconds
-of wall time, the fail-safe applies u = 0 (valve centred) to that sample,
-warns once per outage and counts the event; control resumes when commands
-return. A diverged state (|y| > y_limit or not finite) is published and ends
-the episode.
+publish state i + 1 — as fast as the controller answers. If no command
+arrives within ``command_timeout`` seconds of wall time, the fail-safe
+applies u = 0 (valve centred) to that sample, warns once per outage and
+counts it; control resumes when commands return.
 
-``mode: realtime``: a dedicated thread steps the plant against the wall clock
-every ``simulation.step`` (a ROS timer cannot hold 0.3 ms in rclpy), holding
-the latest command (zero-order hold). Without a command for
-``failsafe_samples`` samples it centres the valve. Achieved rate, jitter
-percentiles and overruns go to ``/diagnostics`` (diagnostic_msgs) once a
-second and into :attr:`PlantNode.realtime_stats`.
+``mode: realtime``: paced lock-step (:mod:`has_control.nodes.pacing`):
+sample i is due at t0 + i·Δt of wall time; a command that misses its sample's
+deadline is a counted miss (the last command is held), and after
+``failsafe_samples`` consecutive misses the valve is centred. The loop runs
+on the thread that owns the executor (``main``, or ``has-control stack
+--realtime``), with SCHED_FIFO at ``realtime_priority`` where permitted.
+
+Both modes: a diverged state (|y| > y_limit or not finite) is published and
+ends the episode. A command of another layout, a stale stamp or a non-finite
+value is refused and counted (``malformed_commands``, logged at most every
+5 s); it never reaches the state. ``/diagnostics`` gets the loop's figures
+once a second (rate, fail-safe samples, refused commands; in realtime also
+real-time factor, misses and lateness percentiles).
 
 Topics: ``state`` (sensor_msgs/JointState, out), ``command``
 (sensor_msgs/JointState, in), ``clock`` (rosgraph_msgs/Clock, out; resolves to
-``/clock`` in the root namespace, remap it there under a namespace).
-Services (std_srvs/Trigger): ``~/reset`` back to the initial state at sample
-0 and idle; ``~/start`` publish the current state and run an episode of
-``samples`` samples (0: until stopped).
+``/clock`` in the root namespace). Services (std_srvs/Trigger): ``~/reset``
+back to the initial state at sample 0 and idle; ``~/start`` run an episode of
+``samples`` samples (0: until stopped) from the current state.
 Parameters: ``actuator.*``, ``simulation.*``, ``mode``, ``samples``,
-``command_timeout`` [s], ``failsafe_samples``, ``autostart`` (``main`` starts
+``command_timeout`` [s], ``failsafe_samples``, ``realtime_priority``
+(SCHED_FIFO priority, 0: normal scheduling), ``autostart`` (``main`` starts
 the first episode when a controller connects), ``keep_alive`` (``main`` keeps
 serving ``~/start`` after an episode instead of exiting).
 """
 from __future__ import annotations
 
-import threading
 import time
 
-import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
-from ..actuator import plant_step
-from .messages import CONTROL_QOS, sample_of, stamp, state_message, trigger_service
+from .. import loop
+from ..topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
+from ..wire import NOT_FINITE
+from .messages import CONTROL_QOS, raw_publish, sample_of, trigger_service
+from .pacing import LoopStats, run_paced
 from .parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.")
@@ -49,54 +60,63 @@ MODES = ("lockstep", "realtime")
 
 
 class PlantNode(Node):
-    def __init__(self, name: str = "plant", **kwargs):
+    def __init__(self, name: str = "plant", tap=None, **kwargs):
+        """``tap(topic, data)``: an in-process observer of every state and clock published."""
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES)
         self.declare_parameter("mode", "lockstep")
         self.declare_parameter("command_timeout", 0.5)
         self.declare_parameter("failsafe_samples", 10)
+        self.declare_parameter("realtime_priority", 50)
         self.declare_parameter("samples", 0)        # 0: run until stopped
         self.declare_parameter("autostart", True)
         self.declare_parameter("keep_alive", False)
         cfg = config_from_node(self, PREFIXES)
         self.actuator = cfg.actuator
         self.ap = cfg.actuator.as_array()
-        self.step = cfg.episode.step
-        self.step_ns = int(round(self.step * 1e9))
+        self.step_s = cfg.episode.step
+        self.step_ns = int(round(self.step_s * 1e9))
         self.y_limit = cfg.episode.y_limit
         self.samples = int(self.get_parameter("samples").value)
         self.timeout = float(self.get_parameter("command_timeout").value)
         self.failsafe_samples = int(self.get_parameter("failsafe_samples").value)
+        self.priority = int(self.get_parameter("realtime_priority").value)
         self.mode = self.get_parameter("mode").value
         if self.mode not in MODES:
             raise ValueError(f"parameter mode = {self.mode!r}: expected one of {', '.join(MODES)}")
-        x0 = self.actuator.initial_state()
-        plant_step(x0[0], x0[1], x0[2], x0[3], 0.0, self.ap, self.step)   # compile before joining the graph
-        self.state_pub = self.create_publisher(JointState, "state", CONTROL_QOS)
-        self.clock_pub = self.create_publisher(Clock, "clock", 10)
-        sub = self.create_subscription(JointState, "command", self._on_command, CONTROL_QOS)
+        self._state_msg = STATE_LAYOUT.buffer()
+        self._clock_msg = CLOCK_LAYOUT.buffer()
+        self._scratch = loop.scratch()
+        self._warm_up()
+        self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
+        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
+        self._publish_state = raw_publish(self.state_pub, tap)
+        self._publish_clock = raw_publish(self.clock_pub, tap)
+        sub = self.create_subscription(JointState, COMMAND, self._on_command, CONTROL_QOS, raw=True)
         self._command_topic = sub.topic_name
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         trigger_service(self, "~/reset", self._reset_state, "plant at the initial state, sample 0, idle")
         trigger_service(self, "~/start", self.start, "episode started")
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.failsafe_events = 0
+        self.failsafe_events = 0                  # samples run with the valve centred
+        self.malformed_commands = 0
         self.started_at = self.run_seconds = 0.0
         self._in_outage = False
-        self.finished = False
-        self.diverged = False
         self.log: list[tuple[int, float, float, float, float, float]] | None = None
         self.realtime_stats: dict[str, float] = {}
-        self._lock = threading.Lock()
-        self._u_latest = 0.0
-        self._u_sample = -1
-        self._rt_thread: threading.Thread | None = None
-        self._rt_stop = threading.Event()
+        self.run_requested = False                # realtime: start() asks the executor's owner to run
         self._reset_state()
         if self.mode == "lockstep":
             self._watchdog = self.create_timer(max(self.timeout / 4, 0.01), self._check_deadline)
-        else:
-            from diagnostic_msgs.msg import DiagnosticArray
-            self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self._last_report = (time.monotonic(), 0)
+            self.create_timer(1.0, self._report_lockstep)
+
+    def _warm_up(self) -> None:
+        """Compile (or load) the step and the decoder before joining the graph."""
+        x = self.actuator.initial_state()
+        loop.plant_sample(x, 0.0, self.ap, self.step_s, self.y_limit, 1, self.step_ns,
+                          self._state_msg, self._clock_msg, self._scratch)
+        loop.command_of(bytes(self._state_msg), self.step_ns, self._scratch)
 
     # --- parameters --------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -106,7 +126,7 @@ class PlantNode(Node):
             if p.name == "command_timeout" and not (isinstance(p.value, float) and p.value > 0):
                 return SetParametersResult(successful=False,
                                            reason=f"command_timeout = {p.value!r}: must be a number > 0 [s]")
-            if p.name.startswith(PREFIXES) or p.name == "mode":
+            if p.name.startswith(PREFIXES) or p.name in ("mode", "realtime_priority"):
                 return SetParametersResult(successful=False,
                                            reason=f"{p.name}: read at start-up only; restart the plant to change it")
         for p in params:
@@ -116,197 +136,204 @@ class PlantNode(Node):
                 self.timeout = p.value
         return SetParametersResult(successful=True)
 
-    # --- state -------------------------------------------------------------
+    # --- the hardware: state out, command in, step ----------------------------
     def _reset_state(self) -> None:
         """Back to the initial state at sample 0, idle until :meth:`start`."""
-        self._rt_stop.set()
-        if self._rt_thread is not None and self._rt_thread is not threading.current_thread():
-            self._rt_thread.join()
-        self._rt_thread = None
         self.x = self.actuator.initial_state()
         self.sample = 0
         self.finished = False
         self.diverged = False
+        self.command_sample, self.command_u = -1, 0.0
+        loop.encode_state(self.x, self.ap, 0, self.step_ns, self._state_msg, self._clock_msg, self._scratch)
         self._last_publish = time.monotonic()
         self._published = False
 
     def start(self) -> None:
-        """Run an episode from the current state (publishes it first)."""
+        """Run an episode from the current state (lock-step: publishes it now;
+        realtime: the executor's owner runs :meth:`run_realtime`)."""
         self.finished = False
         self.started_at = time.perf_counter()
         if self.mode == "realtime":
-            self._rt_stop.clear()
-            self._rt_thread = threading.Thread(target=self._realtime_loop, name="plant-realtime", daemon=True)
-            self._rt_thread.start()
+            self.run_requested = True
         else:
-            self._publish()
-
-    def wait_realtime(self, timeout: float | None = None) -> None:
-        """Block until the realtime loop has ended (its last diagnostics are out)."""
-        if self._rt_thread is not None:
-            self._rt_thread.join(timeout)
+            self.publish_state()
 
     def connected(self) -> bool:
         """Both directions of the loop have a peer (a controller is listening and talking)."""
         return bool(self.state_pub.get_subscription_count()
                     and self.count_publishers(self._command_topic))
 
-    def _publish(self) -> None:
-        self.clock_pub.publish(Clock(clock=stamp(self.sample, self.step_ns)))
-        self.state_pub.publish(state_message(self.sample, self.step_ns, self.x, self.actuator))
+    def publish_state(self) -> None:
+        """Write: the clock and state of the current sample."""
+        self._publish_clock(bytes(self._clock_msg))
+        self._publish_state(bytes(self._state_msg))
         self._last_publish = time.monotonic()
         self._published = True
 
-    def _step(self, u: float) -> bool:
-        """Advance one sample with valve command u [m]; False when the episode ends."""
+    def step(self, u: float) -> bool:
+        """Update: advance one sample with valve command u [m]; False when the
+        episode ends (the diverged state is then published, for the record)."""
         if self.log is not None:
             self.log.append((self.sample, *map(float, self.x), u))
-        y, v, p1, p2 = plant_step(self.x[0], self.x[1], self.x[2], self.x[3], u, self.ap, self.step)
-        self.x = np.array([y, v, p1, p2])
         self.sample += 1
+        bad = loop.plant_sample(self.x, u, self.ap, self.step_s, self.y_limit, self.sample, self.step_ns,
+                                self._state_msg, self._clock_msg, self._scratch)
         if self.samples and self.sample >= self.samples:
-            self.finished = True
-            self.run_seconds = time.perf_counter() - self.started_at
+            self._finish()
             return False
-        if not np.all(np.isfinite(self.x)) or abs(y) > self.y_limit:
-            self.get_logger().error(f"diverged at sample {self.sample}: y = {y:.4g} m")
-            self._publish()                        # the diverged state, for the record
-            self.finished = self.diverged = True
-            self.run_seconds = time.perf_counter() - self.started_at
+        if bad:
+            self.get_logger().error(f"diverged at sample {self.sample}: y = {self.x[0]:.4g} m")
+            self.publish_state()
+            self.diverged = True
+            self._finish()
             return False
         return True
 
-    def _advance(self, u: float) -> None:
-        if self._step(u):
-            self._publish()
+    def _finish(self) -> None:
+        self.finished = True
+        self.run_seconds = time.perf_counter() - self.started_at
 
-    # --- lock-step callbacks -------------------------------------------------
-    def _on_command(self, msg: JointState) -> None:
-        i = sample_of(msg.header.stamp, self.step_ns)
-        if self.mode == "realtime":
-            with self._lock:
-                self._u_latest, self._u_sample = float(msg.position[0]), i
-            return
-        if self.finished or not self._published or i != self.sample:
+    def _on_command(self, data: bytes) -> None:
+        """Read: keep the latest command; in lock-step, the awaited one advances the plant."""
+        i, u = loop.command_of(data, self.step_ns, self._scratch)
+        if i < 0:
+            i, u = self._decode_other_layout(data, i)
+            if i < 0:
+                return
+        if i >= self.command_sample:
+            self.command_sample, self.command_u = i, u
+        if self.mode == "realtime" or self.finished or not self._published or i != self.sample:
             return                                   # stale or early: not the sample we wait on
         if self._in_outage:
-            self.get_logger().info(f"commands are back at sample {self.sample}")
-            self._in_outage = False
-        self._advance(float(msg.position[0]))
+            self.commands_back()
+        if self.step(u):
+            self.publish_state()
 
+    def _decode_other_layout(self, data: bytes, status: int) -> tuple[int, float]:
+        """A command the fast decoder refused: a JointState of another layout
+        (a frame_id, velocities, more joints) is read by name; anything else is
+        counted and ignored."""
+        if status != NOT_FINITE:
+            try:
+                from rclpy.serialization import deserialize_message
+                msg = deserialize_message(data, JointState)
+                u = float(msg.position[list(msg.name).index(COMMAND_NAMES[0])])
+                i = sample_of(msg.header.stamp, self.step_ns)
+                if u == u and abs(u) != float("inf") and i >= 0:
+                    return i, u
+                status = NOT_FINITE
+            except Exception:                        # noqa: BLE001 - any undecodable bytes
+                pass
+        self.malformed_commands += 1
+        what = "a non-finite value" if status == NOT_FINITE else "not a valve JointState on the sample grid"
+        self.get_logger().warning(f"refused a command ({what}); {self.malformed_commands} so far",
+                                  throttle_duration_sec=5.0)
+        return -1, 0.0
+
+    def failsafe(self, missing: int) -> None:
+        """The valve is centred for this sample (``missing`` commands in a row)."""
+        self.failsafe_events += 1
+        if not self._in_outage:
+            self.get_logger().warning(f"no command for {missing} samples at sample {self.sample}: "
+                                      "valve centred (u = 0) until commands return")
+            self._in_outage = True
+
+    def commands_back(self) -> None:
+        self.get_logger().info(f"commands are back at sample {self.sample}")
+        self._in_outage = False
+
+    # --- lock-step timing ------------------------------------------------------
     def _check_deadline(self) -> None:
         if self.finished or not self._published:
             return
         if time.monotonic() - self._last_publish > self.timeout:
-            self.failsafe_events += 1
-            if not self._in_outage:
-                self.get_logger().warning(
-                    f"no command for sample {self.sample} within {self.timeout:g} s: "
-                    "valve centred (u = 0) until commands return")
-                self._in_outage = True
-            self._advance(0.0)
+            self.failsafe(1)
+            if self.step(0.0):
+                self.publish_state()
+
+    def _report_lockstep(self) -> None:
+        now, done = time.monotonic(), self.sample
+        then, before = self._last_report
+        self._last_report = (now, done)
+        self._diagnose({"rate_hz": (done - before) / (now - then), "samples": float(done),
+                        "failsafe_samples": float(self.failsafe_events),
+                        "malformed_commands": float(self.malformed_commands)}, "lock-step loop")
 
     # --- realtime ------------------------------------------------------------
-    def _realtime_loop(self) -> None:
-        """Step every Δt of wall time: sleep until just before, then spin to the deadline."""
-        dt = self.step
-        period_ns = self.step_ns
-        t0 = time.perf_counter_ns()
-        lateness: list[float] = []
-        overruns = 0
-        report_every = max(1, int(round(1.0 / dt)))
-        self._publish()
-        while not self._rt_stop.is_set():
-            due = t0 + (self.sample + 1) * period_ns
-            now = time.perf_counter_ns()
-            if due - now > 120_000:
-                time.sleep((due - now - 80_000) / 1e9)
-            while (now := time.perf_counter_ns()) < due:
-                time.sleep(0)                          # spin, but let the executor thread run
-            late = (now - due) / 1e3                   # [µs]
-            lateness.append(late)
-            if late > period_ns / 1e3:
-                overruns += 1
-            with self._lock:
-                u, answered = self._u_latest, self._u_sample
-            missing = self.sample - answered
-            if missing > self.failsafe_samples:
-                if not self._in_outage:
-                    self.get_logger().warning(
-                        f"no command for {missing} samples at sample {self.sample}: valve centred (u = 0)")
-                    self._in_outage = True
-                self.failsafe_events += 1
-                u = 0.0
-            elif self._in_outage:
-                self.get_logger().info(f"commands are back at sample {self.sample}")
-                self._in_outage = False
-            if not self._step(u):
-                break
-            self._publish()
-            if self.sample % report_every == 0:
-                self._report(lateness, overruns, now - t0)
-        self._report(lateness, overruns, time.perf_counter_ns() - t0)
+    def run_realtime(self, executor, on_second=None) -> LoopStats:
+        """Run the requested episode paced to wall time on this thread, which
+        must own ``executor`` (see :mod:`has_control.nodes.pacing`)."""
+        self.run_requested = False
+        if not self._published:
+            self.started_at = time.perf_counter()
 
-    def _report(self, lateness: list[float], overruns: int, elapsed_ns: int) -> None:
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-        if not lateness:
-            return
-        lat = np.asarray(lateness)
-        stats = {"rate_hz": self.sample / (elapsed_ns / 1e9), "target_hz": 1.0 / self.step,
-                 "jitter_p50_us": float(np.percentile(lat, 50)),
-                 "jitter_p99_us": float(np.percentile(lat, 99)),
-                 "jitter_max_us": float(lat.max()), "overruns": float(overruns),
-                 "samples": float(self.sample), "failsafe_events": float(self.failsafe_events)}
-        self.realtime_stats = stats
-        ok = stats["rate_hz"] >= 0.99 * stats["target_hz"]
+        def each_second(stats: LoopStats) -> None:
+            self._report_realtime(stats)
+            if on_second is not None:
+                on_second(stats)
+        stats = run_paced(executor, self, priority=self.priority, on_second=each_second)
+        self._report_realtime(stats)
+        st = self.realtime_stats
+        self.get_logger().info(
+            f"realtime: {st['rate_hz']:.0f} samples/s, real-time factor {st['realtime_factor']:.4f}, "
+            f"{st['missed_samples']:.0f} missed, {st['failsafe_samples']:.0f} fail-safe, lateness p50 "
+            f"{st['late_p50_us']:.0f} us, p99 {st['late_p99_us']:.0f} us, max {st['late_max_us']:.0f} us, "
+            f"{st['overruns']:.0f} overruns")
+        return stats
+
+    def _report_realtime(self, stats: LoopStats) -> None:
+        st = stats.as_dict()
+        st["failsafe_events"] = float(self.failsafe_events)
+        st["malformed_commands"] = float(self.malformed_commands)
+        self.realtime_stats = st
+        self._diagnose(st, "realtime loop", ok=st["realtime_factor"] >= 0.99 and not stats.failsafe)
+
+    def _diagnose(self, values: dict[str, float], what: str, ok: bool | None = None) -> None:
+        if ok is None:
+            ok = not self._in_outage
+        message = ", ".join(f"{k} {v:.6g}" for k, v in values.items() if k in
+                            ("rate_hz", "realtime_factor", "missed_samples", "failsafe_samples", "late_p99_us"))
         status = DiagnosticStatus(
             level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
-            name=f"{self.get_fully_qualified_name()}: realtime loop",
-            message=f"{stats['rate_hz']:.0f} of {stats['target_hz']:.0f} samples/s, "
-                    f"p99 jitter {stats['jitter_p99_us']:.0f} us",
+            name=f"{self.get_fully_qualified_name()}: {what}", message=message,
             hardware_id="has_control plant",
-            values=[KeyValue(key=k, value=f"{v:.6g}") for k, v in stats.items()])
+            values=[KeyValue(key=k, value=f"{v:.6g}") for k, v in values.items()])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.diagnostics_pub.publish(msg)
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = PlantNode()
-    keep_alive = bool(node.get_parameter("keep_alive").value)
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.experimental import EventsExecutor
     try:
-        if node.get_parameter("autostart").value:
-            while rclpy.ok() and not node.connected():
-                rclpy.spin_once(node, timeout_sec=0.05)
-            node.get_logger().info("controller connected: starting the run")
-            node.start()
-        else:
-            node.get_logger().info("waiting for ~/start")
-        while rclpy.ok() and (keep_alive or not node.finished):
-            rclpy.spin_once(node, timeout_sec=0.1)
-            if node.finished and node.run_seconds and keep_alive:
-                _log_finished(node)
-                node.run_seconds = 0.0
-        if node.finished and not keep_alive:
-            node.wait_realtime(5.0)
-            _log_finished(node)
-    except KeyboardInterrupt:
+        with rclpy.init(args=args):
+            node = PlantNode()
+            executor = EventsExecutor()
+            executor.add_node(node)
+            keep_alive = bool(node.get_parameter("keep_alive").value)
+            if node.get_parameter("autostart").value:
+                while rclpy.ok() and not node.connected():
+                    executor.spin_once(timeout_sec=0.05)
+                node.get_logger().info("controller connected: starting the run")
+                node.start()
+            else:
+                node.get_logger().info("waiting for ~/start")
+            while rclpy.ok() and (keep_alive or not node.finished):
+                if node.run_requested:
+                    node.run_realtime(executor)
+                else:
+                    executor.spin_once(timeout_sec=0.1)
+                if node.finished and node.run_seconds:
+                    _log_finished(node)
+                    node.run_seconds = 0.0
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    finally:
-        node._rt_stop.set()
-        node.destroy_node()
-        rclpy.try_shutdown()
 
 
 def _log_finished(node: PlantNode) -> None:
     rate = node.sample / node.run_seconds if node.run_seconds else float("nan")
     node.get_logger().info(
-        f"finished {node.sample} samples at t = {node.sample * node.step:.4f} s: "
-        f"y = {node.x[0]:.9e} m, fail-safe events = {node.failsafe_events}, {rate:.0f} samples/s"
+        f"finished {node.sample} samples at t = {node.sample * node.step_s:.4f} s: "
+        f"y = {node.x[0]:.9e} m, fail-safe samples = {node.failsafe_events}, {rate:.0f} samples/s"
         + (" (diverged)" if node.diverged else ""))
-    st = node.realtime_stats
-    if st:
-        node.get_logger().info(
-            f"realtime: {st['rate_hz']:.0f} samples/s, jitter p50 {st['jitter_p50_us']:.1f} us, "
-            f"p99 {st['jitter_p99_us']:.1f} us, max {st['jitter_max_us']:.1f} us, {st['overruns']:.0f} overruns")

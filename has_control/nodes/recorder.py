@@ -1,37 +1,51 @@
-"""Record a run's topics to a rosbag2 MCAP bag, CDR bytes straight to disk.
+"""Record a run's topics to a rosbag2 MCAP bag from the CDR bytes already in hand.
 
-The :class:`Recorder` attaches raw subscriptions (``raw=True``: no
-deserialisation) to any node, for one namespace, and writes what arrives to
-the bag that is open at the time (:meth:`Recorder.open` / :meth:`close`),
-so a tuner can record episode after episode on the same subscriptions. Log
-time is simulation time: the header stamp of JointState and Clock, and the
-leading t of our Float64MultiArray topics.
+A :class:`Recorder` takes messages as serialized bytes, never re-encoding
+them, from two intakes:
 
-The subscriptions keep every message (reliable, keep-all): a lock-step bag
-holds exactly one state and one command per sample.
+* raw subscriptions (``raw=True``: no deserialisation) on a node, for one
+  namespace: the generic path, for a graph anywhere on the ROS network (the
+  tuner's lanes);
+* :meth:`Recorder.observe`, a tap the nodes composed in this process call
+  with the bytes they publish (``has-control stack --record``): no executor
+  event and no callback per message.
+
+Messages are kept per topic and written in batches (:meth:`BagWriter.write_batches`)
+on a writer thread, so the loop pays a list append per message. Log time is
+simulation time: the header stamp of JointState and Clock, and the leading t
+of our Float64MultiArray topics. A lock-step bag holds exactly one state and
+one command per sample. :meth:`open` / :meth:`close` let a tuner record
+episode after episode on the same subscriptions.
 """
 from __future__ import annotations
 
 import math
 import struct
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable
 
+import numpy as np
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from .. import cdr
-from ..bag import (CLOCK, CLOCK_TOPIC, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, PARAMETERS_KEY,
-                   RUN_TOPICS, STATE, BagWriter, QosSpec, parameters_json)
+from ..bag import PARAMETERS_KEY, BagWriter, QosSpec, parameters_json
+from ..topics import (CLOCK, CLOCK_TOPIC, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, RUN_TOPICS, STATE,
+                      STATE_LAYOUT)
 
 _CLASSES = {JOINT_STATE: JointState, CLOCK: Clock, FLOAT64_ARRAY: Float64MultiArray}
 
 #: What the publishers offer (stored in the bag as rosbag2 does).
 OFFERED = {STATE: QosSpec(depth=1), COMMAND: QosSpec(depth=1), CLOCK_TOPIC: QosSpec(depth=10),
            GAINS: QosSpec(depth=1, transient_local=True)}
+
+#: Messages of the state topic between two hand-overs to the writer thread.
+BATCH = 4096
+
+_Y = int(STATE_LAYOUT.values[0])          # byte offset of position[0] = y in a state message
 
 
 def _subscription_qos(transient_local: bool) -> QoSProfile:
@@ -40,64 +54,74 @@ def _subscription_qos(transient_local: bool) -> QoSProfile:
                       else DurabilityPolicy.VOLATILE)
 
 
-def _stamp_ns(data: bytes) -> int:
-    sec, nsec = struct.unpack_from("<iI", data, 4)
-    return sec * 1_000_000_000 + nsec
-
-
-def _leading_t_ns(data: bytes) -> int:
-    return int(round(cdr.first_float64(data) * 1e9))
-
-
 def topic_name(namespace: str, relative: str) -> str:
     ns = namespace.rstrip("/")
     return f"{ns}/{relative}" if ns else f"/{relative}"
 
 
-class Recorder:
-    """Raw subscriptions on ``node`` for the run topics of ``namespace``."""
+def log_times_ns(msgtype: str, datas: list[bytes]) -> np.ndarray:
+    """Simulation time of each message [ns]: its stamp, or the leading t of our arrays."""
+    if msgtype in (JOINT_STATE, CLOCK):
+        return cdr.stamps_ns(datas)
+    try:
+        t = cdr.float64_arrays(datas)[:, 0]
+    except cdr.CdrError:                       # mixed layouts: one by one
+        t = np.array([cdr.first_float64(d) for d in datas])
+    return np.rint(t * 1e9).astype(np.int64)
 
-    def __init__(self, node, namespace: str = "", topics: dict[str, str] | None = None,
-                 y_limit: float = math.inf):
-        self.node = node
+
+class Recorder:
+    """Records the run topics of ``namespace``; subscribes on ``node`` unless ``subscribe`` is False."""
+
+    def __init__(self, node=None, namespace: str = "", topics: dict[str, str] | None = None,
+                 y_limit: float = math.inf, subscribe: bool = True):
         self.namespace = namespace
         self.topics = {topic_name(namespace, rel): (rel, ty) for rel, ty in (topics or RUN_TOPICS).items()}
+        self._state = topic_name(namespace, STATE)
+        self._command = topic_name(namespace, COMMAND)
         self.writer: BagWriter | None = None
-        self.rename: Callable[[str], str] = lambda t: t
+        self.prefix = ""
         self.counts: dict[str, int] = {t: 0 for t in self.topics}
+        self.pending: dict[str, list[bytes]] = {t: [] for t in self.topics}
         self.samples_wanted = 0
         self.done = threading.Event()
         self.diverged = False
         self.y_limit = y_limit
-        self._y_offset: int | None = None
         self._lock = threading.Lock()
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="bag-writer")
+        self._writes: list = []
         self.subscriptions = []
-        for full, (rel, ty) in self.topics.items():
-            timefn = _stamp_ns if ty in (JOINT_STATE, CLOCK) else _leading_t_ns
-            self.subscriptions.append(node.create_subscription(
-                _CLASSES[ty], full, self._callback(full, rel, timefn),
-                _subscription_qos(rel == GAINS), raw=True))
+        if node is not None and subscribe:
+            for full, (rel, ty) in self.topics.items():
+                self.subscriptions.append(node.create_subscription(
+                    _CLASSES[ty], full, lambda data, t=full: self.observe(t, data),
+                    _subscription_qos(rel == GAINS), raw=True))
 
-    def _callback(self, full: str, rel: str, timefn):
-        def on_message(data: bytes) -> None:
-            with self._lock:
-                if self.writer is None:
-                    return
-                self.writer.write(self.rename(full), timefn(data), data)
-                self.counts[full] += 1
-                if rel == STATE:
-                    self._check_state(data)
-                elif rel == COMMAND and self.samples_wanted and self.counts[full] >= self.samples_wanted:
-                    self.done.set()
-        return on_message
+    def observe(self, topic: str, data: bytes) -> None:
+        """Take one message of ``topic`` (its full name) as published."""
+        with self._lock:
+            if self.writer is None:
+                return
+            self.pending[topic].append(data)
+            n = self.counts[topic] = self.counts[topic] + 1
+            if topic == self._state:
+                if self.y_limit < math.inf:
+                    y = struct.unpack_from("<d", data, _Y)[0] if len(data) == STATE_LAYOUT.size else math.nan
+                    if not abs(y) <= self.y_limit:
+                        self.diverged = True
+                        self.done.set()
+                if len(self.pending[topic]) >= BATCH:
+                    self._hand_over()
+            elif topic == self._command and self.samples_wanted and n >= self.samples_wanted:
+                self.done.set()
 
-    def _check_state(self, data: bytes) -> None:
-        if self._y_offset is None:
-            self._y_offset = cdr.joint_state_layout(data).position[0]
-        y = struct.unpack_from("<d", data, self._y_offset)[0]
-        if not math.isfinite(y) or abs(y) > self.y_limit:
-            self.diverged = True
-            self.done.set()
+    def _hand_over(self) -> None:
+        """Give what is pending to the writer thread (called with the lock held)."""
+        batch = {t: m for t, m in self.pending.items() if m}
+        if not batch:
+            return
+        self.pending = {t: [] for t in self.topics}
+        self._writes.append(self._pool.submit(_write, self.writer, batch, self.topics, self.prefix))
 
     def connected(self) -> bool:
         """Every subscription has matched a publisher."""
@@ -108,12 +132,12 @@ class Recorder:
         """Start writing to a new bag at ``path`` (or into ``writer`` under ``prefix``)."""
         custom = {PARAMETERS_KEY: parameters_json(cfg)} if cfg is not None else {}
         w = writer or BagWriter(path, custom)
-        rename = (lambda t: prefix + t) if prefix else (lambda t: t)
         for full, (rel, ty) in self.topics.items():
-            w.add_topic(rename(full), ty, OFFERED.get(rel, QosSpec(depth=10)))
+            w.add_topic(prefix + full, ty, OFFERED.get(rel, QosSpec(depth=10)))
         with self._lock:
-            self.writer, self.rename = w, rename
+            self.writer, self.prefix = w, prefix
             self.counts = {t: 0 for t in self.topics}
+            self.pending = {t: [] for t in self.topics}
             self.samples_wanted = samples
             self.diverged = False
             self.done.clear()
@@ -123,17 +147,22 @@ class Recorder:
         return self.counts[topic_name(self.namespace, relative)]
 
     def detach(self) -> BagWriter | None:
-        """Stop writing; returns the writer (still open)."""
+        """Stop taking messages; everything taken is written. Returns the writer (still open)."""
         with self._lock:
+            if self.writer is not None:
+                self._hand_over()
             w, self.writer = self.writer, None
+            writes, self._writes = self._writes, []
+        for f in writes:
+            f.result()                          # re-raises a write error here
         return w
 
     def close(self) -> Path | None:
-        """Stop writing and close the bag."""
+        """Stop taking messages and close the bag."""
         w = self.detach()
         return w.close() if w is not None else None
 
-    def destroy(self) -> None:
-        for s in self.subscriptions:
-            self.node.destroy_subscription(s)
-        self.subscriptions = []
+
+def _write(writer: BagWriter, batch: dict[str, list[bytes]], topics: dict, prefix: str) -> None:
+    """One batch of messages, topic by topic, into the bag (on the writer thread)."""
+    writer.write_batches({prefix + t: (log_times_ns(topics[t][1], msgs), msgs) for t, msgs in batch.items()})

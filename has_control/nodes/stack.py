@@ -6,10 +6,12 @@ in-process trace.
 """
 from __future__ import annotations
 
+import gc
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import rclpy
@@ -26,9 +28,10 @@ from .plant_node import PlantNode
 class StackRun:
     trace: np.ndarray          # rows (t, x1d, y, ẏ, P1, P2, u, e1, e2, e3, â1, â2)
     score: Score
-    seconds: float
+    seconds: float             # wall time, set-up included
     failsafe_events: int
     bag: Path | None = None
+    loop: dict = field(default_factory=dict)   # the loop's figures (see :func:`loop_figures`)
 
 
 def _overrides(cfg: Config) -> list[Parameter]:
@@ -42,15 +45,33 @@ def _plant_parameters(params: list[Parameter]) -> list[Parameter]:
     return [p for p in params if p.name.startswith(PREFIXES)]
 
 
+def loop_figures(samples: int, seconds: float, step: float, failsafe: int, paced: dict | None = None) -> dict:
+    """``samples_per_second`` (the loop's rate after start-up), ``realtime_factor``
+    (simulation time / wall time), ``missed_samples``, ``failsafe_samples`` and
+    ``late_p99_us`` (paced runs only; None in lock-step)."""
+    if paced:
+        return {"samples_per_second": paced["rate_hz"], "realtime_factor": paced["realtime_factor"],
+                "missed_samples": int(paced["missed_samples"]), "failsafe_samples": int(paced["failsafe_samples"]),
+                "late_p99_us": paced["late_p99_us"]}
+    return {"samples_per_second": samples / seconds if seconds else None,
+            "realtime_factor": samples * step / seconds if seconds else None,
+            "missed_samples": 0, "failsafe_samples": failsafe, "late_p99_us": None}
+
+
 def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
               publish_internals: bool = False, args: list[str] | None = None,
               context: rclpy.Context | None = None, timeout: float = 600.0,
-              domain_id: int | None = None, record: str | Path | None = None) -> StackRun:
-    """Run one lock-step episode through plant and controller nodes in this process.
+              domain_id: int | None = None, record: str | Path | None = None,
+              realtime: bool = False, priority: int = 50,
+              progress: Callable[[int, int, float], None] | None = None) -> StackRun:
+    """Run one episode through plant and controller nodes composed in this
+    process (the ros2_control layout), lock-step or, with ``realtime``, paced
+    to wall time (SCHED_FIFO at ``priority`` where permitted).
 
-    ``record``: also record the run to a rosbag2 MCAP bag at this path (a
-    recorder node in the same executor; the controller then publishes its
-    internals, which the bag needs for scoring).
+    ``record``: also record the run to a rosbag2 MCAP bag at this path, from
+    the bytes the nodes publish (the controller then publishes its internals,
+    which the bag needs for scoring). ``progress(samples done, samples,
+    samples/s)`` is called about once a second.
     """
     from ..config import build_config
     cfg = cfg or Config()
@@ -62,41 +83,54 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         context = rclpy.Context()
         rclpy.init(args=args, context=context, domain_id=domain_id)
     try:
+        t0 = time.perf_counter()
         params = _overrides(cfg)
         n = cfg.episode.samples
-        plant = PlantNode(namespace=namespace, context=context,
-                          parameter_overrides=_plant_parameters(params) + [Parameter("samples", value=n)])
-        internals = publish_internals or record is not None
-        controller = ControllerNode(namespace=namespace, context=context,
-                                    parameter_overrides=params + [Parameter("publish_internals", value=internals)])
-        controller.log = []
-        executor = EventsExecutor(context=context)
-        nodes = [plant, controller]
-        recorder = None
+        recorder = tap = None
         if record is not None:
             from .recorder import Recorder
-            rec_node = rclpy.create_node("recorder", namespace=namespace, context=context)
-            recorder = Recorder(rec_node, namespace)
+            recorder = Recorder(namespace=namespace, subscribe=False)
             recorder.open(record, cfg)
-            nodes.append(rec_node)
+            tap = recorder.observe
+        plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
+            params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
+                       Parameter("mode", value="realtime" if realtime else "lockstep")])
+        internals = publish_internals or record is not None
+        controller = ControllerNode(namespace=namespace, context=context, tap=tap,
+                                    parameter_overrides=params + [Parameter("publish_internals", value=internals)])
+        controller.record_trace(n)
+        if realtime:
+            plant.log = []                     # the command each sample ran with (held ones included)
+        executor = EventsExecutor(context=context)
+        nodes = [plant, controller]
         for node in nodes:
             executor.add_node(node)
-        t0 = time.perf_counter()
-        _wait_for_match(executor, plant, controller, recorder)
-        plant.start()
-        deadline = time.monotonic() + timeout
-        while not plant.finished and time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.1)
-        seconds = time.perf_counter() - t0
-        trace = np.array(controller.log).reshape(-1, 12)
-        bag = None
-        if recorder is not None:
-            _drain(executor, recorder, len(trace))
-            bag = recorder.close()
-        diverged = plant.diverged or len(trace) < n
-        trace = trace[:n]
+        _wait_for_match(executor, plant, controller)
+        gc.collect()
+        gc.disable()
+        try:
+            started = time.perf_counter()
+            plant.start()
+            if realtime:
+                paced = plant.run_realtime(executor, on_second=progress and (
+                    lambda st: progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9)))).as_dict()
+            else:
+                paced = None
+                _spin_lockstep(executor, plant, n, timeout, progress)
+            loop_seconds = time.perf_counter() - started
+        finally:
+            gc.enable()
+        bag = recorder.close() if recorder is not None else None
+        answered = int(np.count_nonzero(~np.isnan(controller.trace[:, 0])))
+        trace = controller.trace[:answered].copy()
+        if realtime:                           # the command the plant ran with, not only the one computed
+            applied = np.array([row[-1] for row in plant.log])
+            m = min(len(applied), len(trace))
+            trace[:m, 6] = applied[:m]
+        diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
         score = score_arrays(trace[:, 7], trace[:, 6], cfg.episode.as_array(), diverged=diverged)
-        run = StackRun(trace, score, seconds, plant.failsafe_events, bag)
+        figures = loop_figures(plant.sample, loop_seconds, cfg.episode.step, plant.failsafe_events, paced)
+        run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures)
         executor.shutdown()
         for node in nodes:
             node.destroy_node()
@@ -106,28 +140,36 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             rclpy.try_shutdown(context=context)
 
 
-def _wait_for_match(executor, plant, controller, recorder=None, timeout: float = 10.0) -> None:
-    """Spin until both directions of the loop (and the recorder) have discovered each other."""
+def _spin_lockstep(executor, plant, samples: int, timeout: float, progress) -> None:
+    """Serve the lock-step chain of callbacks until the plant's episode ends."""
+    deadline = time.monotonic() + timeout
+    report = time.monotonic() + 1.0
+    last = (time.perf_counter(), 0)
+    spin_once = executor.spin_once
+    while not plant.finished:
+        for _ in range(256):
+            spin_once(timeout_sec=0.1)
+            if plant.finished:
+                break
+        now = time.monotonic()
+        if now > deadline:
+            break
+        if progress is not None and now >= report:
+            report = now + 1.0
+            t, done = time.perf_counter(), plant.sample
+            progress(done, samples, (done - last[1]) / (t - last[0]))
+            last = (t, done)
+
+
+def _wait_for_match(executor, plant, controller, timeout: float = 10.0) -> None:
+    """Spin until both directions of the loop have discovered each other."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
-        if (plant.state_pub.get_subscription_count() and controller.command_pub.get_subscription_count()
-                and (recorder is None or recorder.connected())):
+        if plant.state_pub.get_subscription_count() and controller.command_pub.get_subscription_count():
             return
         executor.spin_once(timeout_sec=0.01)
     raise RuntimeError("plant and controller did not discover each other within "
                        f"{timeout:g} s (ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')})")
-
-
-def _drain(executor, recorder, commands: int, timeout: float = 10.0) -> None:
-    """Spin until the recorder holds every message the run published."""
-    from ..bag import COMMAND, CONTROLLER_STATE, REFERENCE, STATE
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if all(recorder.count(t) >= commands for t in (STATE, COMMAND, REFERENCE, CONTROLLER_STATE)):
-            return
-        executor.spin_once(timeout_sec=0.01)
-    counts = {t: recorder.count(t) for t in (STATE, COMMAND, REFERENCE, CONTROLLER_STATE)}
-    raise RuntimeError(f"recorder missed messages: {counts}, expected {commands} each")
 
 
 def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str = "batch",
