@@ -203,6 +203,8 @@ def test_crcs_are_written_and_a_flipped_bit_is_caught(tmp_path, compression):
     summary_start, offsets_start, summary_crc = struct.unpack_from("<QQI", data, footer + 9)
     assert summary_crc == zlib.crc32(data[footer:footer + 25], zlib.crc32(data[summary_start:footer]))
     assert summary_start < offsets_start < footer
+    data_end = summary_start - 13                         # DataEnd: opcode, length, crc of all before it
+    assert data[data_end] == 0x0F and struct.unpack_from("<I", data, data_end + 9)[0] == zlib.crc32(data[:data_end])
 
     start = chunks[1][0]
     bad = bytearray(data)
