@@ -38,8 +38,9 @@ MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1 << 20               # a chunk is closed once its records pass this [bytes]
 NO_TIME = 2**63 - 1                 # start time [ns] before any message, as rosbags keeps it
 
-HEADER, FOOTER, SCHEMA, CHANNEL, MESSAGE, CHUNK, MESSAGE_INDEX, CHUNK_INDEX = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07, 0x08
-STATISTICS, METADATA, METADATA_INDEX, SUMMARY_OFFSET, DATA_END = 0x0B, 0x0C, 0x0D, 0x0E, 0x0F
+# record opcodes
+HEADER, FOOTER, SCHEMA, CHANNEL, MESSAGE, CHUNK, MESSAGE_INDEX = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07
+CHUNK_INDEX, STATISTICS, METADATA, METADATA_INDEX, SUMMARY_OFFSET, DATA_END = 0x08, 0x0B, 0x0C, 0x0D, 0x0E, 0x0F
 
 COMPRESSIONS = {"zstd": "zstd", "none": ""}     # our option -> MCAP's compression string
 MESSAGE_HEAD = 31                   # opcode, length, channel, sequence, log and publish time [bytes]
