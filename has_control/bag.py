@@ -3,8 +3,11 @@
 Outer layer: rosbags and the MCAP format, no rclpy. A bag is what
 ``ros2 bag record -s mcap`` writes: a directory with ``metadata.yaml``
 (rosbag2 version 9) and one ``.mcap`` file, profile ``ros2``, schemas
-``ros2msg``, messages ``cdr``, zstd-compressed chunks, each channel with its
-``offered_qos_profiles``. Log time is simulation time. The run's parameters
+``ros2msg``, messages ``cdr``, zstd-compressed chunks with their CRCs, each
+channel with its ``offered_qos_profiles`` and ``topic_type_hash``. The MCAP
+file is written by :mod:`~has_control.mcap_writer` (batches of messages as
+NumPy arrays); rosbags supplies the message definitions, their type hashes
+and the QoS profiles' form. Log time is simulation time. The run's parameters
 travel in the bag's ``custom_data`` (key ``has_control/parameters``, JSON),
 so a bag can be scored without knowing how it was made.
 
@@ -46,11 +49,15 @@ def warn(message: str) -> None:
 
 # --- writing ----------------------------------------------------------------
 
+#: The ROS release whose message definitions (and type hashes) the bags carry.
+ROS_DISTRO = "kilted"
+
+
 @lru_cache(maxsize=1)
 def typestore():
-    """Message definitions (rosbags' store of the current ROS 2 release)."""
+    """Message definitions (rosbags' store of :data:`ROS_DISTRO`)."""
     from rosbags.typesys import Stores, get_typestore
-    return get_typestore(Stores.ROS2_KILTED)
+    return get_typestore(getattr(Stores, f"ROS2_{ROS_DISTRO.upper()}"))
 
 
 @dataclass(frozen=True)
@@ -61,43 +68,81 @@ class QosSpec:
     depth: int = 1
     transient_local: bool = False
 
-    def rosbags(self):
+    def profiles(self) -> list[dict]:
+        """``offered_qos_profiles`` in rosbag2 version 9 form (rosbags' ``dump_qos_v9``)."""
         from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                         QosReliability, QosTime)
+        from rosbags.rosbag2.metadata import dump_qos_v9
         never = QosTime(0x7FFFFFFF, 0xFFFFFFFF)
-        return Qos(QosHistory.KEEP_LAST, self.depth,
-                   QosReliability.RELIABLE if self.reliable else QosReliability.BEST_EFFORT,
-                   QosDurability.TRANSIENT_LOCAL if self.transient_local else QosDurability.VOLATILE,
-                   never, never, QosLiveliness.AUTOMATIC, never, False)
+        return dump_qos_v9([Qos(QosHistory.KEEP_LAST, self.depth,
+                                QosReliability.RELIABLE if self.reliable else QosReliability.BEST_EFFORT,
+                                QosDurability.TRANSIENT_LOCAL if self.transient_local else QosDurability.VOLATILE,
+                                never, never, QosLiveliness.AUTOMATIC, never, False)])
+
+
+@dataclass(frozen=True)
+class _Topic:
+    channel: int
+    msgtype: str
+    qos: list[dict]
+    type_hash: str                  # RIHS01_<sha256 hex> (REP 2011)
+
+
+def _yaml(doc) -> str:
+    return yaml.safe_dump(doc, default_flow_style=False)
 
 
 class BagWriter:
-    """A rosbag2 (version 9) MCAP bag with zstd chunks, written message by message."""
+    """A rosbag2 (version 9) MCAP bag, as ``ros2 bag record -s mcap`` writes it
+    (see the module's docstring), written message by message or in NumPy
+    batches by :class:`~has_control.mcap_writer.McapWriter`.
 
-    def __init__(self, path: str | Path, custom_data: dict[str, str] | None = None):
-        from rosbags.rosbag2 import Writer
-        from rosbags.rosbag2.enums import CompressionFormat, CompressionMode, StoragePlugin
+    ``compression`` is ``"zstd"`` (chunks, the default) or ``"none"``.
+    ``metadata.yaml`` is written on :meth:`close`, as rosbags writes it."""
+
+    def __init__(self, path: str | Path, custom_data: dict[str, str] | None = None, compression: str = "zstd"):
+        from .mcap_writer import McapWriter
         self.path = Path(path)
-        if self.path.exists():
-            raise BagError(f"{self.path}: exists already; a bag is never overwritten")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
-        self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        for k, v in (custom_data or {}).items():
-            self._writer.set_custom_data(k, v)
-        self._writer.open()
-        self._connections: dict[str, object] = {}
-        self.counts: dict[str, int] = {}
+        self.custom_data = dict(custom_data or {})
+        bad = [k for k, v in self.custom_data.items() if not isinstance(v, str)]
+        if bad:
+            raise BagError(f"{self.path}: custom_data {bad[0]!r} is not a string")
+        try:
+            self.path.mkdir(parents=True)
+        except FileExistsError:
+            raise BagError(f"{self.path}: exists already; a bag is never overwritten") from None
+        self.file = self.path / f"{self.path.name}.mcap"
+        self._mcap = McapWriter(self.file, "ros2", "has_control", compression)
+        self._schemas: dict[str, int] = {}
+        self._topics: dict[str, _Topic] = {}
 
     def add_topic(self, topic: str, msgtype: str, qos: QosSpec = QosSpec()) -> None:
-        if topic not in self._connections:
-            self._connections[topic] = self._writer.add_connection(
-                topic, msgtype, typestore=typestore(), offered_qos_profiles=[qos.rosbags()])
-            self.counts[topic] = 0
+        """Declare ``topic`` (again: no-op): its schema (``ros2msg``) and channel,
+        with ``offered_qos_profiles`` and ``topic_type_hash`` as rosbag2 writes them."""
+        if topic in self._topics:
+            return
+        ts = typestore()
+        if msgtype not in self._schemas:
+            text, _ = ts.generate_msgdef(msgtype, ros_version=2)
+            self._schemas[msgtype] = self._mcap.add_schema(msgtype, "ros2msg", text.encode())
+        profiles, type_hash = qos.profiles(), ts.hash_rihs01(msgtype)
+        channel = self._mcap.add_channel(topic, self._schemas[msgtype], "cdr", {
+            "offered_qos_profiles": _yaml(profiles).strip(), "topic_type_hash": type_hash})
+        self._topics[topic] = _Topic(channel, msgtype, profiles, type_hash)
+
+    def _channel(self, topic: str) -> int:
+        if topic not in self._topics:
+            raise BagError(f"{self.path}: no topic {topic} (add_topic first)")
+        return self._topics[topic].channel
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Messages written per topic."""
+        return {t: self._mcap.counts[x.channel] for t, x in self._topics.items()}
 
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
-        self._writer.write(self._connections[topic], int(log_time_ns), data)
-        self.counts[topic] += 1
+        """One CDR message (buffered until the next batch, sync or close)."""
+        self._mcap.write(self._channel(topic), log_time_ns, data)
 
     def write_batches(self, batches: dict[str, tuple[np.ndarray, list[bytes]]]) -> None:
         """Several topics' messages at once: ``{topic: (log times [ns], messages)}``."""
@@ -108,17 +153,50 @@ class BagWriter:
     def write_message(self, topic: str, log_time_ns: int, msg, msgtype: str) -> None:
         self.write(topic, log_time_ns, bytes(typestore().serialize_cdr(msg, msgtype)))
 
+    def write_batches(self, batches: dict[str, tuple[np.ndarray, np.ndarray | list[bytes]]]) -> None:
+        """CDR messages of several topics: ``{topic: (log_times_ns int64 (n,), data)}``,
+        data a (n, size) uint8 matrix or a list of n ``bytes``; merged in
+        log-time order (ties: topics in the order given, then arrival)."""
+        self._mcap.write_batches({self._channel(t): batch for t, batch in batches.items()})
+
     def sync(self) -> None:
         """Close the open chunk and flush it to disk: a crash after this loses
-        nothing written so far. (rosbags has no public call for this; its MCAP
-        storage closes a chunk at 1 MiB by itself.)"""
-        storage = self._writer.storage
-        if storage.chunk.bio.tell():
-            storage.close_chunk()
-        storage.bio.flush()
+        nothing written so far."""
+        self._mcap.sync()
+
+    def _metadata(self) -> dict:
+        """``rosbag2_bagfile_information`` as rosbags writes it (version 9)."""
+        start, counts = self._mcap.start_ns, self._mcap.counts
+        duration, count = max(0, self._mcap.end_ns - start), sum(counts.values())
+        return {
+            "version": 9,
+            "storage_identifier": "mcap",
+            "relative_file_paths": [self.file.name],
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": count,
+            "topics_with_message_count": [
+                {"topic_metadata": {"name": topic, "type": x.msgtype, "serialization_format": "cdr",
+                                    "offered_qos_profiles": x.qos, "type_description_hash": x.type_hash},
+                 "message_count": counts[x.channel]}
+                for topic, x in self._topics.items()],
+            "compression_format": "",           # chunk compression is the storage's own business
+            "compression_mode": "",
+            "files": [{"path": self.file.name, "starting_time": {"nanoseconds_since_epoch": start},
+                       "duration": {"nanoseconds": duration}, "message_count": count}],
+            "custom_data": self.custom_data or None,
+            "ros_distro": ROS_DISTRO,
+        }
 
     def close(self) -> Path:
-        self._writer.close()
+        """Finish the MCAP file (with the ``rosbag2`` metadata record) and write
+        ``metadata.yaml``; the bag's path. Closing twice does nothing."""
+        if not self._mcap.closed:
+            info = self._metadata()
+            self._mcap.close({"rosbag2": {"serialized_metadata": _yaml(info).strip()}})
+            tmp = self.path / "metadata.yaml.tmp"
+            tmp.write_text(_yaml({"rosbag2_bagfile_information": info}), "utf8")
+            tmp.replace(self.path / "metadata.yaml")
         return self.path
 
     def __enter__(self):
@@ -158,12 +236,11 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
             np.column_stack([t, d[:, 7], d[:, 8], d[:, 9], d[:, 10], d[:, 11], d[:, 1]]))),
         GAINS: (FLOAT64_ARRAY, cdr.encode_float64_arrays([[0.0, *k]])),
     }
-    for rel, (ty, msgs) in topics.items():
-        topic = f"{prefix}/{rel}"
-        writer.add_topic(topic, ty)
-        times = stamps if len(msgs) == n else [0]
-        for ts, m in zip(times, msgs):
-            writer.write(topic, int(ts) + log_offset_ns, m)
+    for rel, (ty, _) in topics.items():
+        writer.add_topic(f"{prefix}/{rel}", ty)
+    writer.write_batches({f"{prefix}/{rel}": ((stamps if len(msgs) == n else np.zeros(1, np.int64)) + log_offset_ns,
+                                              msgs)
+                          for rel, (_, msgs) in topics.items()})
 
 
 # --- reading ----------------------------------------------------------------
