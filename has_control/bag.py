@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import struct
 import sys
+import threading
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -115,10 +116,15 @@ class BagWriter:
         self._mcap = McapWriter(self.file, "ros2", "has_control", compression)
         self._schemas: dict[str, int] = {}
         self._topics: dict[str, _Topic] = {}
+        self._lock = threading.RLock()            # a recorder's writer thread and the caller share a bag
 
     def add_topic(self, topic: str, msgtype: str, qos: QosSpec = QosSpec()) -> None:
         """Declare ``topic`` (again: no-op): its schema (``ros2msg``) and channel,
         with ``offered_qos_profiles`` and ``topic_type_hash`` as rosbag2 writes them."""
+        with self._lock:
+            self._add_topic(topic, msgtype, qos)
+
+    def _add_topic(self, topic: str, msgtype: str, qos: QosSpec) -> None:
         if topic in self._topics:
             return
         ts = typestore()
@@ -142,13 +148,8 @@ class BagWriter:
 
     def write(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """One CDR message (buffered until the next batch, sync or close)."""
-        self._mcap.write(self._channel(topic), log_time_ns, data)
-
-    def write_batches(self, batches: dict[str, tuple[np.ndarray, list[bytes]]]) -> None:
-        """Several topics' messages at once: ``{topic: (log times [ns], messages)}``."""
-        for topic, (times, datas) in batches.items():
-            for t, d in zip(times, datas):
-                self.write(topic, int(t), d)
+        with self._lock:
+            self._mcap.write(self._channel(topic), log_time_ns, data)
 
     def write_message(self, topic: str, log_time_ns: int, msg, msgtype: str) -> None:
         self.write(topic, log_time_ns, bytes(typestore().serialize_cdr(msg, msgtype)))
@@ -157,12 +158,14 @@ class BagWriter:
         """CDR messages of several topics: ``{topic: (log_times_ns int64 (n,), data)}``,
         data a (n, size) uint8 matrix or a list of n ``bytes``; merged in
         log-time order (ties: topics in the order given, then arrival)."""
-        self._mcap.write_batches({self._channel(t): batch for t, batch in batches.items()})
+        with self._lock:
+            self._mcap.write_batches({self._channel(t): batch for t, batch in batches.items()})
 
     def sync(self) -> None:
         """Close the open chunk and flush it to disk: a crash after this loses
         nothing written so far."""
-        self._mcap.sync()
+        with self._lock:
+            self._mcap.sync()
 
     def _metadata(self) -> dict:
         """``rosbag2_bagfile_information`` as rosbags writes it (version 9)."""
@@ -191,13 +194,17 @@ class BagWriter:
     def close(self) -> Path:
         """Finish the MCAP file (with the ``rosbag2`` metadata record) and write
         ``metadata.yaml``; the bag's path. Closing twice does nothing."""
+        with self._lock:
+            self._close()
+        return self.path
+
+    def _close(self) -> None:
         if not self._mcap.closed:
             info = self._metadata()
             self._mcap.close({"rosbag2": {"serialized_metadata": _yaml(info).strip()}})
             tmp = self.path / "metadata.yaml.tmp"
             tmp.write_text(_yaml({"rosbag2_bagfile_information": info}), "utf8")
             tmp.replace(self.path / "metadata.yaml")
-        return self.path
 
     def __enter__(self):
         return self
@@ -216,14 +223,16 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
     the node graph publishes for it: state, command, reference, controller
     state and gains, under ``prefix`` (e.g. ``/validation``). Log time is
     simulation time plus ``log_offset_ns``; stamps are simulation time."""
-    from .reference import reference
+    from .actuator import joint_state
     from .episode import EpisodeArrays
+    from .reference import reference
     d = trace.data
     n = len(d)
     step_ns = int(round(cfg.episode.step * 1e9))
     stamps = np.arange(n, dtype=np.int64) * step_ns
     t = d[:, 0]
-    pos, vel, eff = cfg.actuator.joint_state(d[:, 2], d[:, 3], d[:, 4], d[:, 5])
+    js = joint_state(d[:, 2], d[:, 3], d[:, 4], d[:, 5], cfg.actuator.as_array())
+    pos, vel, eff = js[0:3], js[3:6], js[6:9]
     rp = EpisodeArrays.from_config(cfg).reference
     ref = np.array([(ti, *reference(rp, ti)) for ti in t]).reshape(n, 5)
     k = trace.gains.as_tuple()

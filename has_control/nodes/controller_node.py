@@ -86,6 +86,7 @@ class ControllerNode(Node):
         """Estimates back to â(0); the next sample starts a new run."""
         self._mem[loop.A1_HAT], self._mem[loop.A2_HAT] = self.cfg.adaptation.initial
         self._mem[loop.X3D_PREV] = self._mem[loop.HAS_PREV] = 0.0
+        self._last_state = self._last_command = b""
         self._announce = True                   # publish the gains in force at the next sample
 
     @property
@@ -130,6 +131,9 @@ class ControllerNode(Node):
         if not isinstance(data, bytes):          # a message object (in-process callers, tests)
             from rclpy.serialization import serialize_message
             data = serialize_message(data)
+        if data == self._last_state:             # the plant sent it again: the same answer (not to observers)
+            self.command_pub.publish(self._last_command)
+            return
         if self._pending is not None:
             self._apply(self._pending)
             self._pending = None
@@ -145,7 +149,8 @@ class ControllerNode(Node):
         if self._announce:
             self._publish_gains(GAINS_LAYOUT.encode([i * self.dt, *self.k]))
             self._announce = False
-        self._publish_command(bytes(self._command))
+        self._last_state, self._last_command = data, bytes(self._command)
+        self._publish_command(self._last_command)
         if self.publish_internals:
             self._publish_internals(bytes(self._internals))
             self._publish_reference(bytes(self._reference))

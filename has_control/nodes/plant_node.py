@@ -10,7 +10,10 @@ graph equals the in-process trace, bit for bit.
 publish state i + 1 — as fast as the controller answers. If no command
 arrives within ``command_timeout`` seconds of wall time, the fail-safe
 applies u = 0 (valve centred) to that sample, warns once per outage and
-counts it; control resumes when commands return.
+counts it; control resumes when commands return. A state unanswered after a
+quarter of the timeout is sent once more (a controller that has just
+matched may have missed it; a repeated state is answered with the same
+command).
 
 ``mode: realtime``: paced lock-step (:mod:`has_control.nodes.pacing`):
 sample i is due at t0 + i·Δt of wall time; a command that misses its sample's
@@ -147,6 +150,7 @@ class PlantNode(Node):
         loop.encode_state(self.x, self.ap, 0, self.step_ns, self._state_msg, self._clock_msg, self._scratch)
         self._last_publish = time.monotonic()
         self._published = False
+        self._resent = False
 
     def start(self) -> None:
         """Run an episode from the current state (lock-step: publishes it now;
@@ -169,6 +173,7 @@ class PlantNode(Node):
         self._publish_state(bytes(self._state_msg))
         self._last_publish = time.monotonic()
         self._published = True
+        self._resent = False
 
     def step(self, u: float) -> bool:
         """Update: advance one sample with valve command u [m]; False when the
@@ -246,10 +251,16 @@ class PlantNode(Node):
     def _check_deadline(self) -> None:
         if self.finished or not self._published:
             return
-        if time.monotonic() - self._last_publish > self.timeout:
+        waited = time.monotonic() - self._last_publish
+        if waited > self.timeout:
             self.failsafe(1)
             if self.step(0.0):
                 self.publish_state()
+        elif waited > self.timeout / 4 and not self._resent:
+            # A controller that has just matched may not have had the state:
+            # send it once more (not to observers); it answers a repeat with the same command.
+            self.state_pub.publish(bytes(self._state_msg))
+            self._resent = True
 
     def _report_lockstep(self) -> None:
         now, done = time.monotonic(), self.sample
@@ -335,5 +346,5 @@ def _log_finished(node: PlantNode) -> None:
     rate = node.sample / node.run_seconds if node.run_seconds else float("nan")
     node.get_logger().info(
         f"finished {node.sample} samples at t = {node.sample * node.step_s:.4f} s: "
-        f"y = {node.x[0]:.9e} m, fail-safe samples = {node.failsafe_events}, {rate:.0f} samples/s"
+        f"y = {node.x[0]:.9e} m, fail-safe events = {node.failsafe_events}, {rate:.0f} samples/s"
         + (" (diverged)" if node.diverged else ""))
