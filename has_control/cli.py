@@ -68,12 +68,30 @@ def cmd_simulate(args) -> int:
     return 0
 
 
-class Progress:
-    """One self-rewriting status line on a terminal; silent when piped."""
+class StatusLine:
+    """One self-rewriting status line on a terminal (stderr); silent when piped."""
 
-    def __init__(self, label: str, stream=None):
+    def __init__(self, stream=None):
         self.stream = stream or sys.stderr
         self.enabled = self.stream.isatty()
+        self.used = False
+
+    def show(self, text: str) -> None:
+        if self.enabled:
+            self.stream.write(f"\r{text} ")
+            self.stream.flush()
+            self.used = True
+
+    def close(self) -> None:
+        if self.used:
+            self.stream.write("\n")
+
+
+class Progress(StatusLine):
+    """A tuning run's progress bar on a terminal."""
+
+    def __init__(self, label: str, stream=None):
+        super().__init__(stream)
         self.label = label
         self.t0 = None
 
@@ -86,13 +104,8 @@ class Progress:
         rate = swarm.evaluations / max(now - self.t0, 1e-9)
         total = swarm.settings.iterations
         filled = int(30 * swarm.iteration / total)
-        self.stream.write(f"\r{self.label} [{'#' * filled}{'.' * (30 - filled)}] "
-                          f"{swarm.iteration}/{total}  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s ")
-        self.stream.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            self.stream.write("\n")
+        self.show(f"{self.label} [{'#' * filled}{'.' * (30 - filled)}] "
+                  f"{swarm.iteration}/{total}  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s")
 
 
 def _tuning_args(args):
@@ -176,16 +189,30 @@ def cmd_stack(args) -> int:
     if args.tune:
         return _stack_tune(args, cfg)
     record = _new_bag_path(args.record) if args.record else None
-    run = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True, record=record)
-    s = run.score
+    mode = "realtime" if args.realtime else "lock-step"
+    line = StatusLine() if cfg.episode.horizon > 3.0 else None
+
+    def progress(done: int, total: int, rate: float) -> None:
+        line.show(f"stack ({mode}): {done:,} of {total:,} samples, {rate:,.0f} samples/s")
+    try:
+        run = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True, record=record,
+                        realtime=args.realtime, progress=progress if line and line.enabled else None)
+    finally:
+        if line:
+            line.close()
+    s, f = run.score, run.loop
     if args.json:
-        print(json.dumps(s.as_json()))
+        print(json.dumps({**s.as_json(), **f}))
     else:
         k = gains or cfg.gains.as_tuple()
-        print(f"stack (plant + controller, lock-step, one process): k = ({k[0]:g}, {k[1]:g}, {k[2]:g}), "
-              f"{s.samples} samples in {run.seconds:.2f} s ({s.samples / run.seconds:,.0f} samples/s)"
-              f"{'; fail-safe events: ' + str(run.failsafe_events) if run.failsafe_events else ''}")
+        print(f"stack (plant + controller, {mode}, one process): k = ({k[0]:g}, {k[1]:g}, {k[2]:g}), "
+              f"{s.samples} samples at {f['samples_per_second']:,.0f} samples/s "
+              f"(real-time factor {f['realtime_factor']:.3f})")
         print(f"J = {s.J:.6e}   e_max = {s.e_max:.4e} m, e_mu = {s.e_mu:.4e} m, e_sigma = {s.e_sigma:.4e} m")
+        if args.realtime or f["failsafe_samples"]:
+            late = f"{f['late_p99_us']:.0f} us" if f["late_p99_us"] is not None else "n/a"
+            print(f"missed {f['missed_samples']} samples, {f['failsafe_samples']} on the fail-safe, "
+                  f"lateness p99 {late}")
         if run.bag:
             print(f"recorded {run.bag}")
     return 0
@@ -320,13 +347,15 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--iterations", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
     rp.set_defaults(func=cmd_reproduce, duration=None, variant=None, seed=None)
 
-    st = sub.add_parser("stack", help="run plant and controller nodes in one process, lock-step")
+    st = sub.add_parser("stack", help="run plant and controller nodes in one process, lock-step or real time")
     st.add_argument("--duration", type=float, metavar="S", help="horizon [s] (default: config, 10 s)")
     st.add_argument("--gains", nargs=3, metavar=("K1", "K2", "K3"), help="gains [1/s] (default: config)")
     st.add_argument("--namespace", metavar="NS", help="ROS namespace of both nodes, e.g. /sim0")
     st.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
     st.add_argument("--json", action="store_true", help="print the keys of simulate --json")
     st.add_argument("--record", metavar="DIR", help="record the run to a rosbag2 MCAP bag DIR")
+    st.add_argument("--realtime", action="store_true",
+                    help="pace the loop to wall time (paced lock-step; misses and lateness in --json)")
     st.add_argument("--tune", action="store_true",
                     help="add the tuner node: tune the gains, set the best on the controller")
     st.add_argument("--variant", choices=("pso", "pso-cp", "pso-cp-tvac"), help="with --tune")

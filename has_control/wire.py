@@ -148,10 +148,16 @@ def sample_of_stamp(data, step_ns):
     return i
 
 
+#: Bytes rclpy may append after a message's last field (its serializer pads
+#: JointState with empty arrays to 68 bytes where CDR needs 60).
+TRAILING = 8
+
+
 @njit(**INLINE)
 def matches(data, template, fixed):
-    """``data`` has the template's size and its bytes wherever ``fixed``."""
-    if len(data) != len(template):
+    """``data`` has the template's size (give or take TRAILING bytes after the
+    last field) and the template's bytes wherever ``fixed``."""
+    if not len(template) <= len(data) <= len(template) + TRAILING:
         return False
     for k in range(len(template)):
         if fixed[k] and data[k] != template[k]:

@@ -40,6 +40,8 @@ import numpy as np
 LATE_BINS_US = 10_000
 #: Sleep in the executor until this long before a sample is due, then spin [ns].
 SPIN_NS = 150_000
+#: Missed samples whose index is kept (for reports and tests).
+MISSES_KEPT = 1000
 #: The once-a-second report waits for a sample that leaves at least this much slack [ns].
 REPORT_SLACK_NS = 200_000
 
@@ -56,6 +58,7 @@ class LoopStats:
     sim_ns: int = 0                  # simulation time from the first state published to the last
     wall_ns: int = 0                 # wall time over the same span
     late_max_ns: int = 0
+    missed_at: list[int] = field(default_factory=list)   # the first MISSES_KEPT missed samples
     late_us: np.ndarray = field(default_factory=lambda: np.zeros(LATE_BINS_US + 1, dtype=np.int64))
 
     def late_percentile(self, q: float) -> float:
@@ -152,6 +155,8 @@ def run_paced(executor, plant, *, priority: int = 0,
                     plant.commands_back()
                 in_a_row = 0
             else:
+                if stats.missed < MISSES_KEPT:
+                    stats.missed_at.append(i)
                 stats.missed += 1
                 in_a_row += 1
                 if in_a_row > failsafe_after:

@@ -32,6 +32,7 @@ class StackRun:
     failsafe_events: int
     bag: Path | None = None
     loop: dict = field(default_factory=dict)   # the loop's figures (see :func:`loop_figures`)
+    missed_at: list[int] = field(default_factory=list)   # realtime: samples that ran on a held command
 
 
 def _overrides(cfg: Config) -> list[Parameter]:
@@ -112,10 +113,11 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             started = time.perf_counter()
             plant.start()
             if realtime:
-                paced = plant.run_realtime(executor, on_second=progress and (
-                    lambda st: progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9)))).as_dict()
+                stats = plant.run_realtime(executor, on_second=progress and (
+                    lambda st: progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))))
+                paced, missed_at = stats.as_dict(), stats.missed_at
             else:
-                paced = None
+                paced, missed_at = None, []
                 _spin_lockstep(executor, plant, n, timeout, progress)
             loop_seconds = time.perf_counter() - started
         finally:
@@ -130,7 +132,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
         score = score_arrays(trace[:, 7], trace[:, 6], cfg.episode.as_array(), diverged=diverged)
         figures = loop_figures(plant.sample, loop_seconds, cfg.episode.step, plant.failsafe_events, paced)
-        run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures)
+        run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at)
         executor.shutdown()
         for node in nodes:
             node.destroy_node()
