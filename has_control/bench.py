@@ -57,34 +57,6 @@ def bench_evaluator(particles: int = 80, repeats: int = 3, numpy_horizon: float 
     }
 
 
-def bench_graph(duration: float = 1.5) -> dict:
-    """Lock-step samples per second through the ROS graph: one process, and two."""
-    import os
-    import re
-    import subprocess
-    import sys
-
-    from .episode import with_horizon
-    from .nodes.stack import run_stack
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               ROS_DOMAIN_ID=str(200 + os.getpid() % 30))
-    cfg = with_horizon(Config(), duration)
-    one = run_stack(cfg, domain_id=int(env["ROS_DOMAIN_ID"]))
-    n = cfg.episode.samples
-    cli = [sys.executable, "-m", "has_control.cli"]
-    controller = subprocess.Popen(cli + ["controller"], env=env, stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.DEVNULL)
-    try:
-        plant = subprocess.run(cli + ["plant", "--ros-args", "-p", f"samples:={n}"], env=env,
-                               capture_output=True, text=True, timeout=600)
-    finally:
-        controller.terminate()
-        controller.wait(timeout=30)
-    m = re.search(r"(\d+) samples/s", plant.stdout + plant.stderr)
-    return {"samples": n, "one_process": len(one.trace) / one.seconds,
-            "two_processes": float(m.group(1)) if m else float("nan")}
-
-
 def bench_optimiser(iterations: int = 20) -> dict:
     """Share of a tuning run spent in the swarm itself (not in the evaluator)."""
     from .tuning import Tuning, tune
@@ -117,63 +89,20 @@ def bench_paper(seed: int = 1) -> dict:
             "runs": runs}
 
 
-def bench_recording(duration: float = 3.0) -> dict:
-    """Lock-step with and without the MCAP recorder; scoring a 10 s bag."""
-    import os
+def bench_scoring() -> float:
+    """Seconds to score a 10 s bag (33 333 samples, 5 topics), best of 3."""
     import tempfile
     from pathlib import Path
 
-    from .bag import BagWriter, parameters_json, PARAMETERS_KEY, score_bag, write_trace
-    from .episode import simulate, with_horizon
-    from .nodes.stack import run_stack
-    domain = 200 + os.getpid() % 30
-    cfg = with_horizon(Config(), duration)
+    from .bag import PARAMETERS_KEY, BagWriter, parameters_json, score_bag, write_trace
+    from .episode import simulate
+    full = Config()
     with tempfile.TemporaryDirectory() as tmp:
-        plain = min((run_stack(cfg, publish_internals=True, domain_id=domain) for _ in range(2)),
-                    key=lambda r: r.seconds)
-        rec = min((run_stack(cfg, record=Path(tmp) / f"run{i}", domain_id=domain) for i in range(2)),
-                  key=lambda r: r.seconds)
-        size = sum(f.stat().st_size for f in rec.bag.iterdir())
-        messages = 5 * cfg.episode.samples + 1
-        full = Config()
         bag = Path(tmp) / "ten_seconds"
         with BagWriter(bag, {PARAMETERS_KEY: parameters_json(full)}) as w:
             write_trace(w, simulate(full), full)
         score_bag(bag)                                   # warm
-        t_score = _best_of(3, lambda: score_bag(bag))
-    return {"samples": cfg.episode.samples, "plain_seconds": plain.seconds, "recorded_seconds": rec.seconds,
-            "overhead": rec.seconds / plain.seconds - 1.0, "messages_per_second": messages / rec.seconds,
-            "mb_per_second": size / 2**20 / rec.seconds, "bag_mib": size / 2**20,
-            "score_10s_bag_seconds": t_score}
-
-
-def bench_realtime(duration: float = 3.0) -> dict:
-    """The plant in realtime mode as its own process, with a controller process."""
-    import os
-    import re
-    import subprocess
-    import sys
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               ROS_DOMAIN_ID=str(170 + os.getpid() % 30))
-    n = int(round(duration / Config().episode.step))
-    cli = [sys.executable, "-m", "has_control.cli"]
-    controller = subprocess.Popen(cli + ["controller", "--ros-args", "-p", "publish_internals:=false"], env=env,
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        plant = subprocess.run(cli + ["plant", "--ros-args", "-p", "mode:=realtime", "-p", f"samples:={n}"],
-                               env=env, capture_output=True, text=True, timeout=600)
-    finally:
-        controller.terminate()
-        controller.wait(timeout=30)
-    log = plant.stdout + plant.stderr
-    m = re.search(r"realtime: ([\d.]+) samples/s, jitter p50 ([\d.]+) us, p99 ([\d.]+) us, "
-                  r"max ([\d.]+) us, (\d+) overruns", log)
-    f = re.search(r"fail-safe events = (\d+)", log)
-    if not m:
-        return {"samples": n, "error": log[-500:]}
-    return {"samples": n, "rate": float(m.group(1)), "p50_us": float(m.group(2)), "p99_us": float(m.group(3)),
-            "max_us": float(m.group(4)), "overruns": int(m.group(5)),
-            "failsafe_events": int(f.group(1)) if f else -1}
+        return _best_of(3, lambda: score_bag(bag))
 
 
 def main(argv=None) -> int:
@@ -181,7 +110,12 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--paper", action="store_true",
                     help="run only the paper experiment for one seed, for real (about a minute)")
+    ap.add_argument("--graph", action="store_true", help="run only the node-graph table (about a minute)")
     args = ap.parse_args(argv)
+    if args.graph:
+        from .nodes.loopbench import bench_graph, print_graph
+        print_graph(bench_graph(repeats=args.repeats))
+        return 0
     if args.paper:
         r = bench_paper()
         print(f"paper experiment, seed 1, run for real: {r['episodes']:,} episodes of 10 s in "
@@ -201,27 +135,12 @@ def main(argv=None) -> int:
           f"-> batch evaluator is {r['speedup_vs_python']:.0f}x faster (wall)")
     print(f"  paper experiment (3 variants x 80 x 100 episodes), evaluator time: "
           f"{r['paper_experiment_seconds_estimate']:.1f} s")
-    g = bench_graph()
-    print(f"node graph, lock-step, {g['samples']} samples: {g['one_process']:,.0f} samples/s in one "
-          f"process (EventsExecutor), {g['two_processes']:,.0f} samples/s across two processes "
-          f"(real time at 0.3 ms is 3,333)")
     o = bench_optimiser()
     print(f"optimiser overhead: {100 * o['optimiser_share']:.2f} % of a {o['iterations']}-iteration "
           f"tuning run ({o['seconds']:.1f} s) is spent outside the evaluator")
-    r = bench_recording()
-    print(f"recording to MCAP, lock-step, {r['samples']} samples: {r['plain_seconds']:.2f} s without, "
-          f"{r['recorded_seconds']:.2f} s with the recorder (+{100 * r['overhead']:.0f} %); "
-          f"{r['messages_per_second']:,.0f} messages/s, {r['mb_per_second']:.2f} MiB/s "
-          f"({r['bag_mib']:.1f} MiB bag, zstd)")
-    print(f"  scoring a 10 s bag (33,333 samples, 5 topics): {r['score_10s_bag_seconds']:.3f} s")
-    rt = bench_realtime()
-    if "error" in rt:
-        print(f"realtime mode: no result: {rt['error']}")
-    else:
-        print(f"realtime mode (plant and controller processes, {rt['samples']} samples): "
-              f"{rt['rate']:,.0f} samples/s (target 3,333), jitter p50 {rt['p50_us']:.0f} us, "
-              f"p99 {rt['p99_us']:.0f} us, max {rt['max_us']:.0f} us, {rt['overruns']} overruns, "
-              f"{rt['failsafe_events']} fail-safe samples")
+    print(f"scoring a 10 s bag (33,333 samples, 5 topics): {bench_scoring():.3f} s")
+    from .nodes.loopbench import bench_graph, print_graph
+    print_graph(bench_graph(repeats=args.repeats))
     return 0
 
 

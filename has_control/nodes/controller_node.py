@@ -46,7 +46,7 @@ PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.")
 
 class ControllerNode(Node):
     def __init__(self, name: str = "controller", tap=None, **kwargs):
-        """``tap(topic, data)``: an in-process observer of every message published."""
+        """``tap(topic)``: a function taking every message published on ``topic`` (an in-process observer)."""
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES)
         self.declare_parameter("publish_internals", True)

@@ -49,16 +49,17 @@ def state_message(sample: int, step_ns: int, x, a: Actuator) -> JointState:
 
 def raw_publish(publisher, tap=None):
     """A function that publishes serialized bytes (``publish(bytes)``) on
-    ``publisher`` and hands them to ``tap(topic, data)``, an in-process
-    observer such as the recorder, if one is given."""
+    ``publisher``, and hands them to ``tap(topic)``, an in-process observer
+    such as the recorder's :meth:`~has_control.nodes.recorder.Recorder.sink`,
+    if one is given."""
     publish = publisher.publish
     if tap is None:
         return publish
-    topic = publisher.topic_name
+    take = tap(publisher.topic_name)
 
     def publish_and_tap(data: bytes) -> None:
         publish(data)
-        tap(topic, data)
+        take(data)
     return publish_and_tap
 
 

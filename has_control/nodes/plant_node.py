@@ -64,7 +64,7 @@ MODES = ("lockstep", "realtime")
 
 class PlantNode(Node):
     def __init__(self, name: str = "plant", tap=None, **kwargs):
-        """``tap(topic, data)``: an in-process observer of every state and clock published."""
+        """``tap(topic)``: a function taking every state and clock message published (an in-process observer)."""
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES)
         self.declare_parameter("mode", "lockstep")

@@ -6,9 +6,9 @@ them, from two intakes:
 * raw subscriptions (``raw=True``: no deserialisation) on a node, for one
   namespace: the generic path, for a graph anywhere on the ROS network (the
   tuner's lanes);
-* :meth:`Recorder.observe`, a tap the nodes composed in this process call
+* :meth:`Recorder.sink`, a tap the nodes composed in this process call
   with the bytes they publish (``has-control stack --record``): no executor
-  event and no callback per message.
+  event, callback or lock per message, a list append.
 
 Messages are kept per topic and written in batches (:meth:`BagWriter.write_batches`)
 on a writer thread, so the loop pays a list append per message. Log time is
@@ -59,15 +59,29 @@ def topic_name(namespace: str, relative: str) -> str:
     return f"{ns}/{relative}" if ns else f"/{relative}"
 
 
-def log_times_ns(msgtype: str, datas: list[bytes]) -> np.ndarray:
-    """Simulation time of each message [ns]: its stamp, or the leading t of our arrays."""
+def as_batch(msgtype: str, datas: list[bytes]) -> tuple[np.ndarray, np.ndarray | list[bytes]]:
+    """(log times [ns], messages) of one topic's messages: simulation time from
+    each message's stamp, or the leading t of our arrays; messages of one size
+    become a (n, size) byte matrix, read column-wise without a loop per message."""
+    size = len(datas[0])
+    raw = b"".join(datas)
+    if len(raw) != size * len(datas):                    # mixed sizes: one by one
+        if msgtype in (JOINT_STATE, CLOCK):
+            return cdr.stamps_ns(datas), datas
+        return np.array([round(cdr.first_float64(d) * 1e9) for d in datas], dtype=np.int64), datas
+    matrix = np.frombuffer(raw, dtype=np.uint8).reshape(len(datas), size)
     if msgtype in (JOINT_STATE, CLOCK):
-        return cdr.stamps_ns(datas)
+        sec = matrix[:, 4:8].copy().view("<i4").ravel().astype(np.int64)
+        nsec = matrix[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
+        return sec * 1_000_000_000 + nsec, matrix
     try:
-        t = cdr.float64_arrays(datas)[:, 0]
-    except cdr.CdrError:                       # mixed layouts: one by one
-        t = np.array([cdr.first_float64(d) for d in datas])
-    return np.rint(t * 1e9).astype(np.int64)
+        start, _, _ = cdr.float64_array_layout(datas[0])
+    except (cdr.CdrError, struct.error):
+        start = -1
+    if start < 0 or start + 8 > size:
+        return np.array([round(cdr.first_float64(d) * 1e9) for d in datas], dtype=np.int64), datas
+    t = matrix[:, start:start + 8].copy().view("<f8").ravel()
+    return np.rint(t * 1e9).astype(np.int64), matrix
 
 
 class Recorder:
@@ -81,7 +95,7 @@ class Recorder:
         self._command = topic_name(namespace, COMMAND)
         self.writer: BagWriter | None = None
         self.prefix = ""
-        self.counts: dict[str, int] = {t: 0 for t in self.topics}
+        self.written: dict[str, int] = {t: 0 for t in self.topics}
         self.pending: dict[str, list[bytes]] = {t: [] for t in self.topics}
         self.samples_wanted = 0
         self.done = threading.Event()
@@ -98,30 +112,50 @@ class Recorder:
                     _subscription_qos(rel == GAINS), raw=True))
 
     def observe(self, topic: str, data: bytes) -> None:
-        """Take one message of ``topic`` (its full name) as published."""
+        """Take one message of ``topic`` (its full name) from a subscription."""
         with self._lock:
             if self.writer is None:
                 return
-            self.pending[topic].append(data)
-            n = self.counts[topic] = self.counts[topic] + 1
+            pending = self.pending[topic]
+            pending.append(data)
             if topic == self._state:
                 if self.y_limit < math.inf:
                     y = struct.unpack_from("<d", data, _Y)[0] if len(data) == STATE_LAYOUT.size else math.nan
                     if not abs(y) <= self.y_limit:
                         self.diverged = True
                         self.done.set()
-                if len(self.pending[topic]) >= BATCH:
+                if len(pending) >= BATCH:
                     self._hand_over()
-            elif topic == self._command and self.samples_wanted and n >= self.samples_wanted:
+            elif topic == self._command and self.samples_wanted and \
+                    self.written[topic] + len(pending) >= self.samples_wanted:
                 self.done.set()
 
+    def sink(self, topic: str):
+        """The in-process tap for ``topic`` (its full name): a function that takes
+        each message as published, on the publishing thread, with no lock (the
+        tap and the hand-over to the writer run on that one thread)."""
+        pending = self.pending[topic]
+        if topic != self._state:
+            return pending.append
+
+        def take(data: bytes) -> None:
+            pending.append(data)
+            if len(pending) >= BATCH:
+                self._hand_over()
+        return take
+
     def _hand_over(self) -> None:
-        """Give what is pending to the writer thread (called with the lock held)."""
-        batch = {t: m for t, m in self.pending.items() if m}
-        if not batch:
+        """Give what is pending to the writer thread."""
+        if self.writer is None:
             return
-        self.pending = {t: [] for t in self.topics}
-        self._writes.append(self._pool.submit(_write, self.writer, batch, self.topics, self.prefix))
+        batch = {}
+        for t, m in self.pending.items():
+            if m:
+                batch[t] = m[:]
+                self.written[t] += len(m)
+                m.clear()
+        if batch:
+            self._writes.append(self._pool.submit(_write, self.writer, batch, self.topics, self.prefix))
 
     def connected(self) -> bool:
         """Every subscription has matched a publisher."""
@@ -136,21 +170,23 @@ class Recorder:
             w.add_topic(prefix + full, ty, OFFERED.get(rel, QosSpec(depth=10)))
         with self._lock:
             self.writer, self.prefix = w, prefix
-            self.counts = {t: 0 for t in self.topics}
-            self.pending = {t: [] for t in self.topics}
+            self.written = {t: 0 for t in self.topics}
+            for m in self.pending.values():
+                m.clear()
             self.samples_wanted = samples
             self.diverged = False
             self.done.clear()
         return w
 
     def count(self, relative: str) -> int:
-        return self.counts[topic_name(self.namespace, relative)]
+        """Messages of ``relative`` taken since :meth:`open`."""
+        t = topic_name(self.namespace, relative)
+        return self.written[t] + len(self.pending[t])
 
     def detach(self) -> BagWriter | None:
         """Stop taking messages; everything taken is written. Returns the writer (still open)."""
         with self._lock:
-            if self.writer is not None:
-                self._hand_over()
+            self._hand_over()
             w, self.writer = self.writer, None
             writes, self._writes = self._writes, []
         for f in writes:
@@ -165,4 +201,4 @@ class Recorder:
 
 def _write(writer: BagWriter, batch: dict[str, list[bytes]], topics: dict, prefix: str) -> None:
     """One batch of messages, topic by topic, into the bag (on the writer thread)."""
-    writer.write_batches({prefix + t: (log_times_ns(topics[t][1], msgs), msgs) for t, msgs in batch.items()})
+    writer.write_batches({prefix + t: as_batch(topics[t][1], msgs) for t, msgs in batch.items()})

@@ -33,6 +33,7 @@ class StackRun:
     bag: Path | None = None
     loop: dict = field(default_factory=dict)   # the loop's figures (see :func:`loop_figures`)
     missed_at: list[int] = field(default_factory=list)   # realtime: samples that ran on a held command
+    close_seconds: float = 0.0                 # closing the bag after the loop (what is left to write)
 
 
 def _overrides(cfg: Config) -> list[Parameter]:
@@ -92,7 +93,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             from .recorder import Recorder
             recorder = Recorder(namespace=namespace, subscribe=False)
             recorder.open(record, cfg)
-            tap = recorder.observe
+            tap = recorder.sink
         plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
             params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
                        Parameter("mode", value="realtime" if realtime else "lockstep")])
@@ -122,7 +123,9 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             loop_seconds = time.perf_counter() - started
         finally:
             gc.enable()
+        closing = time.perf_counter()
         bag = recorder.close() if recorder is not None else None
+        close_seconds = time.perf_counter() - closing
         answered = int(np.count_nonzero(~np.isnan(controller.trace[:, 0])))
         trace = controller.trace[:answered].copy()
         if realtime:                           # the command the plant ran with, not only the one computed
@@ -132,7 +135,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
         score = score_arrays(trace[:, 7], trace[:, 6], cfg.episode.as_array(), diverged=diverged)
         figures = loop_figures(plant.sample, loop_seconds, cfg.episode.step, plant.failsafe_events, paced)
-        run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at)
+        run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at,
+                       close_seconds)
         executor.shutdown()
         for node in nodes:
             node.destroy_node()
