@@ -5,14 +5,16 @@ Each state arrives as serialized bytes; one compiled call
 implementation (:func:`~has_control.abc_controller.abc_law`, ``adapt``,
 :func:`~has_control.reference.reference`) with the sample time taken from the
 state's stamp, and encodes the valve command, stamped like the state it
-answers, and the internals. A state of another layout, off the sample grid or
-with a non-finite value is refused and counted (``malformed_states``, logged
+answers, and the internals. A state that goes back in time (a second plant on
+the topic) is counted as a conflict and logged as an error. A state of
+another layout, off the sample grid or with a non-finite value is refused and counted (``malformed_states``, logged
 at most every 5 s): it never reaches the estimates.
 
 Parameters: ``gains.k1..k3`` [1/s] (> 0), ``adaptation.*``, ``reference.*``,
 the model ``actuator.*`` and ``simulation.step``. A parameter set that the
 core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
 and the old values stay; accepted changes apply from the next sample.
+``simulation.*`` (the step must be the plant's) is read at start-up only.
 
 Topics (layouts in :mod:`has_control.topics`): ``state`` (in), ``command``
 (out), and std_msgs/Float64MultiArray leading with the sample's simulation
@@ -37,8 +39,8 @@ from ..episode import TRACE_COLUMNS, EpisodeArrays
 from ..errors import ConfigError
 from ..topics import (COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, GAINS_LAYOUT, REFERENCE_LAYOUT, STATE,
                       STATE_LAYOUT)
-from ..wire import NOT_FINITE
-from .messages import CONTROL_QOS, LATCHED_QOS, raw_publish, spin, trigger_service
+from ..wire import NOT_FINITE, get_stamp
+from .messages import CONTROL_QOS, LATCHED_QOS, node_main, raw_publish, spin, trigger_service
 from .parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.")
@@ -56,6 +58,7 @@ class ControllerNode(Node):
         self._reference = REFERENCE_LAYOUT.buffer()
         self.trace = np.zeros((0, len(TRACE_COLUMNS)))
         self.malformed_states = 0
+        self.conflicts = 0
         self._apply(config_from_node(self, PREFIXES))
         self._pending = None
         self.reset()
@@ -69,7 +72,8 @@ class ControllerNode(Node):
         self._publish_internals = raw_publish(self.internals_pub, tap)
         self._publish_reference = raw_publish(self.reference_pub, tap)
         self._publish_gains = raw_publish(self.gains_pub, tap)
-        self.create_subscription(JointState, STATE, self._on_state, CONTROL_QOS, raw=True)
+        self._state_topic = self.create_subscription(JointState, STATE, self._on_state, CONTROL_QOS,
+                                                     raw=True).topic_name
         trigger_service(self, "~/reset", self.reset, "estimates reset to adaptation.initial")
         self.publish_internals = bool(self.get_parameter("publish_internals").value)
 
@@ -117,6 +121,11 @@ class ControllerNode(Node):
         changes = {p.name: p.value for p in params if p.name.startswith(PREFIXES)}
         if not changes:
             return SetParametersResult(successful=True)
+        fixed = sorted(k for k in changes if k.startswith("simulation."))
+        if fixed:
+            reason = f"{fixed[0]}: read at start-up only (the plant's step); restart the controller to change it"
+            self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
+            return SetParametersResult(successful=False, reason=reason)
         try:
             cfg = config_from_node(self, PREFIXES, overrides=changes)
         except ConfigError as exc:
@@ -127,6 +136,10 @@ class ControllerNode(Node):
         return SetParametersResult(successful=True)
 
     # --- control loop: read -> update -> write --------------------------------
+    def _sample(self, data: bytes) -> int:
+        """Sample index of a serialized state's stamp."""
+        return int(get_stamp(data)) // self.step_ns if len(data) >= 12 else -1
+
     def _on_state(self, data) -> None:
         if not isinstance(data, bytes):          # a message object (in-process callers, tests)
             from rclpy.serialization import serialize_message
@@ -134,6 +147,12 @@ class ControllerNode(Node):
         if data == self._last_state:             # the plant sent it again: the same answer (not to observers)
             self.command_pub.publish(self._last_command)
             return
+        if self._last_state and 0 < self._sample(data) <= self._sample(self._last_state):
+            self.conflicts += 1                  # a second plant on the topic, or time going backwards
+            self.get_logger().error(
+                f"state for sample {self._sample(data)} after sample {self._sample(self._last_state)}: "
+                f"{self.count_publishers(self._state_topic)} publishers on {self._state_topic}; "
+                f"{self.conflicts} conflicting states so far", throttle_duration_sec=5.0)
         if self._pending is not None:
             self._apply(self._pending)
             self._pending = None
@@ -157,12 +176,4 @@ class ControllerNode(Node):
 
 
 def main(args=None):
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.experimental import EventsExecutor
-    try:
-        with rclpy.init(args=args):
-            executor = EventsExecutor()
-            executor.add_node(ControllerNode())
-            spin(executor)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+    node_main(args, ControllerNode, lambda executor, node: spin(executor))

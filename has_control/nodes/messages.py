@@ -73,6 +73,35 @@ def spin(executor, done=lambda: False, period: float = 0.1) -> None:
         executor.spin_once(timeout_sec=period)
 
 
+def node_main(args, make_node, serve) -> None:
+    """A node's ``main``: ``with rclpy.init(args=args):``, the node from
+    ``make_node()`` on an EventsExecutor, then ``serve(executor, node)``.
+
+    A bad parameter at start-up ends in one line naming it and exit status 2;
+    Ctrl-C and SIGTERM end the node cleanly."""
+    import sys
+
+    import rclpy
+    from rclpy.exceptions import NameValidationException, ParameterException
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.experimental import EventsExecutor
+
+    from ..errors import HasControlError
+    prog = (args or sys.argv)[0].split("/")[-1] if (args or sys.argv) else "node"
+    try:
+        with rclpy.init(args=args):
+            try:
+                node = make_node()
+            except (HasControlError, ValueError, ParameterException, NameValidationException) as exc:
+                print(f"{prog}: error: {exc}".splitlines()[0], file=sys.stderr)
+                raise SystemExit(2) from None
+            executor = EventsExecutor()
+            executor.add_node(node)
+            serve(executor, node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+
+
 def trigger_service(node, name: str, action, message: str):
     """A std_srvs/Trigger service ``name`` that calls ``action()`` and answers ``message``."""
     from std_srvs.srv import Trigger

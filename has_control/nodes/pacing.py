@@ -6,8 +6,9 @@ i is due at t0 + i·Δt of wall time. The loop, on the thread that owns the
 executor (rclpy's EventsExecutor cannot be spun from another thread while a
 Python thread paces), does for every sample:
 
-0. start-up: state 0 is published at once and its command awaited up to
-   the plant's ``command_timeout`` (the first answer pays one-time costs);
+0. start-up: the first state is published at once and its command awaited
+   up to the plant's ``first_answer_timeout()`` (the first answer pays one-time
+   costs, and a controller just discovered may not yet have discovered us);
 1. wait until it is due (sleep in the executor, serving its events, until
    shortly before; then spin on the clock);
 2. write: publish state i;
@@ -143,7 +144,7 @@ def run_paced(executor, plant, *, priority: int = 0,
             last = now
             deadline = t0 + (i - start + 1) * period
             if stats.samples == 0:                       # start-up: the first answer may take longer
-                deadline = now + int(plant.timeout * 1e9)
+                deadline = now + int(plant.first_answer_timeout() * 1e9)
             while plant.command_sample != i:
                 left = deadline - clock()
                 if left <= 0:

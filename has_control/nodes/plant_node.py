@@ -10,10 +10,12 @@ graph equals the in-process trace, bit for bit.
 publish state i + 1 — as fast as the controller answers. If no command
 arrives within ``command_timeout`` seconds of wall time, the fail-safe
 applies u = 0 (valve centred) to that sample, warns once per outage and
-counts it; control resumes when commands return. A state unanswered after a
-quarter of the timeout is sent once more (a controller that has just
-matched may have missed it; a repeated state is answered with the same
-command).
+counts it; control resumes when commands return. The first sample of a run
+waits up to ``startup_timeout`` instead when a controller is matched (one
+that has just been discovered may not yet have discovered us). A state unanswered after a
+quarter of the timeout is sent again each quarter (a controller that has
+just matched may have missed it; a repeated state is answered with the
+same command).
 
 ``mode: realtime``: paced lock-step (:mod:`has_control.nodes.pacing`):
 sample i is due at t0 + i·Δt of wall time; a command that misses its sample's
@@ -23,7 +25,9 @@ on the thread that owns the executor (``main``, or ``has-control stack
 --realtime``), with SCHED_FIFO at ``realtime_priority`` where permitted.
 
 Both modes: a diverged state (|y| > y_limit or not finite) is published and
-ends the episode. A command of another layout, a stale stamp or a non-finite
+ends the episode. Two different commands for one sample (a second
+controller on the topic) are counted as ``conflicts`` and logged as errors.
+A command of another layout, a stale stamp or a non-finite
 value is refused and counted (``malformed_commands``, logged at most every
 5 s); it never reaches the state. ``/diagnostics`` gets the loop's figures
 once a second (rate, fail-safe samples, refused commands; in realtime also
@@ -35,7 +39,7 @@ Topics: ``state`` (sensor_msgs/JointState, out), ``command``
 back to the initial state at sample 0 and idle; ``~/start`` run an episode of
 ``samples`` samples (0: until stopped) from the current state.
 Parameters: ``actuator.*``, ``simulation.*``, ``mode``, ``samples``,
-``command_timeout`` [s], ``failsafe_samples``, ``realtime_priority``
+``command_timeout`` [s], ``startup_timeout`` [s], ``failsafe_samples``, ``realtime_priority``
 (SCHED_FIFO priority, 0: normal scheduling), ``autostart`` (``main`` starts
 the first episode when a controller connects), ``keep_alive`` (``main`` keeps
 serving ``~/start`` after an episode instead of exiting).
@@ -54,7 +58,7 @@ from sensor_msgs.msg import JointState
 from .. import loop
 from ..topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
 from ..wire import NOT_FINITE
-from .messages import CONTROL_QOS, raw_publish, sample_of, trigger_service
+from .messages import CONTROL_QOS, node_main, raw_publish, sample_of, trigger_service
 from .pacing import LoopStats, run_paced
 from .parameters import config_from_node, declare_config
 
@@ -69,11 +73,16 @@ class PlantNode(Node):
         declare_config(self, PREFIXES)
         self.declare_parameter("mode", "lockstep")
         self.declare_parameter("command_timeout", 0.5)
+        self.declare_parameter("startup_timeout", 5.0)
         self.declare_parameter("failsafe_samples", 10)
         self.declare_parameter("realtime_priority", 50)
         self.declare_parameter("samples", 0)        # 0: run until stopped
         self.declare_parameter("autostart", True)
         self.declare_parameter("keep_alive", False)
+        for name in ("mode", "command_timeout", "startup_timeout", "failsafe_samples", "realtime_priority", "samples"):
+            reason = self._invalid(name, self.get_parameter(name).value)
+            if reason is not None:
+                raise ValueError(f"parameter {reason}")
         cfg = config_from_node(self, PREFIXES)
         self.actuator = cfg.actuator
         self.ap = cfg.actuator.as_array()
@@ -82,11 +91,10 @@ class PlantNode(Node):
         self.y_limit = cfg.episode.y_limit
         self.samples = int(self.get_parameter("samples").value)
         self.timeout = float(self.get_parameter("command_timeout").value)
+        self.startup_timeout = float(self.get_parameter("startup_timeout").value)
         self.failsafe_samples = int(self.get_parameter("failsafe_samples").value)
         self.priority = int(self.get_parameter("realtime_priority").value)
         self.mode = self.get_parameter("mode").value
-        if self.mode not in MODES:
-            raise ValueError(f"parameter mode = {self.mode!r}: expected one of {', '.join(MODES)}")
         self._state_msg = STATE_LAYOUT.buffer()
         self._clock_msg = CLOCK_LAYOUT.buffer()
         self._scratch = loop.scratch()
@@ -95,14 +103,15 @@ class PlantNode(Node):
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
         self._publish_state = raw_publish(self.state_pub, tap)
         self._publish_clock = raw_publish(self.clock_pub, tap)
-        sub = self.create_subscription(JointState, COMMAND, self._on_command, CONTROL_QOS, raw=True)
-        self._command_topic = sub.topic_name
+        self._command_sub = self.create_subscription(JointState, COMMAND, self._on_command, CONTROL_QOS, raw=True)
+        self._command_topic = self._command_sub.topic_name
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         trigger_service(self, "~/reset", self._reset_state, "plant at the initial state, sample 0, idle")
         trigger_service(self, "~/start", self.start, "episode started")
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.failsafe_events = 0                  # samples run with the valve centred
         self.malformed_commands = 0
+        self.conflicts = 0                        # samples answered twice, differently
         self.started_at = self.run_seconds = 0.0
         self._in_outage = False
         self.log: list[tuple[int, float, float, float, float, float]] | None = None
@@ -122,50 +131,69 @@ class PlantNode(Node):
         loop.command_of(bytes(self._state_msg), self.step_ns, self._scratch)
 
     # --- parameters --------------------------------------------------------
+    @staticmethod
+    def _invalid(name: str, value) -> str | None:
+        """Why ``value`` is not a valid ``name``, or None."""
+        if name == "samples" and not (isinstance(value, int) and value >= 0):
+            return f"samples = {value!r}: must be an integer >= 0"
+        if name in ("command_timeout", "startup_timeout") and not (
+                isinstance(value, float) and 0 < value < float("inf")):
+            return f"{name} = {value!r}: must be a number > 0 [s]"
+        if name == "failsafe_samples" and not (isinstance(value, int) and value >= 0):
+            return f"failsafe_samples = {value!r}: must be an integer >= 0"
+        if name == "realtime_priority" and not (isinstance(value, int) and 0 <= value <= 99):
+            return f"realtime_priority = {value!r}: must be an integer in 0..99 (0: normal scheduling)"
+        if name == "mode" and value not in MODES:
+            return f"mode = {value!r}: expected one of {', '.join(MODES)}"
+        return None
+
     def _on_set_parameters(self, params) -> SetParametersResult:
         for p in params:
-            if p.name == "samples" and (not isinstance(p.value, int) or p.value < 0):
-                return SetParametersResult(successful=False, reason=f"samples = {p.value!r}: must be an integer >= 0")
-            if p.name == "command_timeout" and not (isinstance(p.value, float) and p.value > 0):
-                return SetParametersResult(successful=False,
-                                           reason=f"command_timeout = {p.value!r}: must be a number > 0 [s]")
-            if p.name.startswith(PREFIXES) or p.name in ("mode", "realtime_priority"):
-                return SetParametersResult(successful=False,
-                                           reason=f"{p.name}: read at start-up only; restart the plant to change it")
+            reason = self._invalid(p.name, p.value)
+            if reason is None and (p.name.startswith(PREFIXES) or p.name in ("mode", "realtime_priority")):
+                reason = f"{p.name}: read at start-up only; restart the plant to change it"
+            if reason is not None:
+                return SetParametersResult(successful=False, reason=reason)
         for p in params:
             if p.name == "samples":
                 self.samples = p.value
             elif p.name == "command_timeout":
                 self.timeout = p.value
+            elif p.name == "startup_timeout":
+                self.startup_timeout = p.value
         return SetParametersResult(successful=True)
 
     # --- the hardware: state out, command in, step ----------------------------
     def _reset_state(self) -> None:
         """Back to the initial state at sample 0, idle until :meth:`start`."""
         self.x = self.actuator.initial_state()
-        self.sample = 0
+        self.sample = self._first_sample = 0
         self.finished = False
         self.diverged = False
         self.command_sample, self.command_u = -1, 0.0
         loop.encode_state(self.x, self.ap, 0, self.step_ns, self._state_msg, self._clock_msg, self._scratch)
         self._last_publish = time.monotonic()
         self._published = False
-        self._resent = False
 
     def start(self) -> None:
         """Run an episode from the current state (lock-step: publishes it now;
         realtime: the executor's owner runs :meth:`run_realtime`)."""
         self.finished = False
         self.started_at = time.perf_counter()
+        self._first_sample = self.sample
         if self.mode == "realtime":
             self.run_requested = True
         else:
             self.publish_state()
 
+    def first_answer_timeout(self) -> float:
+        """How long the first sample of a run waits [s]: ``startup_timeout`` while a
+        matched controller has not answered yet, else ``command_timeout``."""
+        return self.startup_timeout if self.connected() else self.timeout
+
     def connected(self) -> bool:
-        """Both directions of the loop have a peer (a controller is listening and talking)."""
-        return bool(self.state_pub.get_subscription_count()
-                    and self.count_publishers(self._command_topic))
+        """Both directions of the loop have matched a peer (a controller is listening and talking)."""
+        return bool(self.state_pub.get_subscription_count() and self._command_sub.get_publisher_count())
 
     def publish_state(self) -> None:
         """Write: the clock and state of the current sample."""
@@ -173,7 +201,6 @@ class PlantNode(Node):
         self._publish_state(bytes(self._state_msg))
         self._last_publish = time.monotonic()
         self._published = True
-        self._resent = False
 
     def step(self, u: float) -> bool:
         """Update: advance one sample with valve command u [m]; False when the
@@ -205,6 +232,8 @@ class PlantNode(Node):
             i, u = self._decode_other_layout(data, i)
             if i < 0:
                 return
+        if i == self.command_sample and u != self.command_u:
+            self._conflict(f"two different commands for sample {i}")
         if i >= self.command_sample:
             self.command_sample, self.command_u = i, u
         if self.mode == "realtime" or self.finished or not self._published or i != self.sample:
@@ -235,6 +264,14 @@ class PlantNode(Node):
                                   throttle_duration_sec=5.0)
         return -1, 0.0
 
+    def _conflict(self, what: str) -> None:
+        """Another controller answers on our command topic: the run's numbers are no
+        longer this loop's. Counted (``conflicts``) and logged; ``stack`` fails on it."""
+        self.conflicts += 1
+        self.get_logger().error(
+            f"{what}: {self.count_publishers(self._command_topic)} publishers on {self._command_topic}; "
+            f"{self.conflicts} conflicting commands so far", throttle_duration_sec=5.0)
+
     def failsafe(self, missing: int) -> None:
         """The valve is centred for this sample (``missing`` commands in a row)."""
         self.failsafe_events += 1
@@ -252,15 +289,15 @@ class PlantNode(Node):
         if self.finished or not self._published:
             return
         waited = time.monotonic() - self._last_publish
-        if waited > self.timeout:
+        limit = self.first_answer_timeout() if self.sample == self._first_sample else self.timeout
+        if waited > limit:
             self.failsafe(1)
             if self.step(0.0):
                 self.publish_state()
-        elif waited > self.timeout / 4 and not self._resent:
-            # A controller that has just matched may not have had the state:
-            # send it once more (not to observers); it answers a repeat with the same command.
+        elif waited > self.timeout / 4:
+            # A controller that has just matched may not have had the state (or we
+            # its answer): send it again (not to observers); a repeat gets the same command.
             self.state_pub.publish(bytes(self._state_msg))
-            self._resent = True
 
     def _report_lockstep(self) -> None:
         now, done = time.monotonic(), self.sample
@@ -268,7 +305,8 @@ class PlantNode(Node):
         self._last_report = (now, done)
         self._diagnose({"rate_hz": (done - before) / (now - then), "samples": float(done),
                         "failsafe_samples": float(self.failsafe_events),
-                        "malformed_commands": float(self.malformed_commands)}, "lock-step loop")
+                        "malformed_commands": float(self.malformed_commands),
+                        "conflicts": float(self.conflicts)}, "lock-step loop")
 
     # --- realtime ------------------------------------------------------------
     def run_realtime(self, executor, on_second=None) -> LoopStats:
@@ -296,6 +334,7 @@ class PlantNode(Node):
         st = stats.as_dict()
         st["failsafe_events"] = float(self.failsafe_events)
         st["malformed_commands"] = float(self.malformed_commands)
+        st["conflicts"] = float(self.conflicts)
         self.realtime_stats = st
         self._diagnose(st, "realtime loop", ok=st["realtime_factor"] >= 0.99 and not stats.failsafe)
 
@@ -315,31 +354,28 @@ class PlantNode(Node):
 
 
 def main(args=None):
-    from rclpy.executors import ExternalShutdownException
-    from rclpy.experimental import EventsExecutor
-    try:
-        with rclpy.init(args=args):
-            node = PlantNode()
-            executor = EventsExecutor()
-            executor.add_node(node)
-            keep_alive = bool(node.get_parameter("keep_alive").value)
-            if node.get_parameter("autostart").value:
-                while rclpy.ok() and not node.connected():
-                    executor.spin_once(timeout_sec=0.05)
-                node.get_logger().info("controller connected: starting the run")
-                node.start()
-            else:
-                node.get_logger().info("waiting for ~/start")
-            while rclpy.ok() and (keep_alive or not node.finished):
-                if node.run_requested:
-                    node.run_realtime(executor)
-                else:
-                    executor.spin_once(timeout_sec=0.1)
-                if node.finished and node.run_seconds:
-                    _log_finished(node)
-                    node.run_seconds = 0.0
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
+    node_main(args, PlantNode, _serve)
+
+
+def _serve(executor, node: PlantNode) -> None:
+    """Start when a controller connects (``autostart``) or on ``~/start``; run
+    episodes until one ends (or, with ``keep_alive``, until shutdown)."""
+    keep_alive = bool(node.get_parameter("keep_alive").value)
+    if node.get_parameter("autostart").value:
+        while rclpy.ok() and not node.connected():
+            executor.spin_once(timeout_sec=0.05)
+        node.get_logger().info("controller connected: starting the run")
+        node.start()
+    else:
+        node.get_logger().info("waiting for ~/start")
+    while rclpy.ok() and (keep_alive or not node.finished):
+        if node.run_requested:
+            node.run_realtime(executor)
+        else:
+            executor.spin_once(timeout_sec=0.1)
+        if node.finished and node.run_seconds:
+            _log_finished(node)
+            node.run_seconds = 0.0
 
 
 def _log_finished(node: PlantNode) -> None:

@@ -134,12 +134,19 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             trace[:m, 6] = applied[:m]
         diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
         score = score_arrays(trace[:, 7], trace[:, 6], cfg.episode.as_array(), diverged=diverged)
+        conflicts = (plant.conflicts, controller.conflicts)
         figures = loop_figures(plant.sample, loop_seconds, cfg.episode.step, plant.failsafe_events, paced)
         run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at,
                        close_seconds)
         executor.shutdown()
         for node in nodes:
             node.destroy_node()
+        if any(conflicts):
+            from ..errors import HasControlError
+            raise HasControlError(
+                f"namespace '{namespace or '/'}': another node publishes on this loop's topics "
+                f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
+                "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         return run
     finally:
         if own:

@@ -1,0 +1,115 @@
+"""Hostile input on the real graph: no node dies of a message, no silent wrong number."""
+import math
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.experimental import EventsExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+
+from has_control.episode import simulate, with_horizon
+from has_control.errors import HasControlError
+from has_control.nodes.controller_node import ControllerNode
+from has_control.nodes.messages import CONTROL_QOS, state_message
+from has_control.nodes.plant_node import PlantNode
+from has_control.nodes.stack import run_stack
+from has_control.params import Config
+
+
+@pytest.fixture
+def context(domain_id):
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+def _spin(ex, cond, seconds):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and not cond():
+        ex.spin_once(timeout_sec=0.01)
+    return cond()
+
+
+def test_malformed_and_non_finite_messages_are_counted_and_ignored(context):
+    """Empty JointStates, NaN values and strangers' layouts reach neither the
+    plant's state nor the controller's estimates; the loop then runs as the library's."""
+    ex = EventsExecutor(context=context)
+    plant = PlantNode(context=context, parameter_overrides=[Parameter("samples", value=2000)])
+    controller = ControllerNode(context=context)
+    controller.record_trace(2000)
+    evil = rclpy.create_node("evil", context=context)
+    to_plant = evil.create_publisher(JointState, "command", CONTROL_QOS)
+    to_controller = evil.create_publisher(JointState, "state", CONTROL_QOS)
+    for n in (plant, controller, evil):
+        ex.add_node(n)
+    assert _spin(ex, lambda: to_plant.get_subscription_count() and to_controller.get_subscription_count(), 10)
+    cfg = Config()
+    nan_state = state_message(0, 300_000, [0.0, math.nan, 1e6, 1e6], cfg.actuator)
+    for msg in (JointState(), JointState(name=["valve"], position=[math.nan]), JointState(name=["valve"])):
+        to_plant.publish(msg)                            # keep-last 1: one at a time
+        _spin(ex, lambda: False, 0.1)
+    for msg in (JointState(), nan_state, JointState(name=["x"], position=[1.0])):
+        to_controller.publish(msg)
+        _spin(ex, lambda: False, 0.1)
+    assert plant.malformed_commands == 3 and controller.malformed_states == 3
+    assert plant.sample == 0 and np.all(np.isfinite(plant.x)) and controller.a1_hat == 2600.0
+    assert _spin(ex, plant.connected, 10)
+    plant.start()
+    assert _spin(ex, lambda: plant.finished, 60)
+    ref = simulate(with_horizon(cfg, 1.5))
+    np.testing.assert_array_equal(controller.trace, ref.data[:2000])
+    ex.shutdown()
+    for n in (plant, controller, evil):
+        n.destroy_node()
+
+
+def test_a_second_controller_on_the_command_topic_fails_the_run_loudly(domain_id):
+    """Another controller answers the same states with other gains: the stack
+    refuses to report a number instead of scoring a mixture."""
+    cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false",
+           "-p", "gains.k1:=400.0"]
+    import os
+    other = subprocess.Popen(cmd, env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(3.0)                                  # it is up and discovered
+        with pytest.raises(HasControlError, match="another node publishes on this loop's topics"):
+            run_stack(with_horizon(Config(), 1.5), domain_id=domain_id)
+    finally:
+        other.kill()
+        other.wait()
+
+
+def test_runtime_changes_the_loop_cannot_take_are_refused(context):
+    controller = ControllerNode(context=context)
+    plant = PlantNode(context=context)
+    try:
+        res = controller.set_parameters([Parameter("simulation.step", value=1e-12)])[0]
+        assert not res.successful and "simulation.step" in res.reason and controller.dt == 3e-4
+        for name, value in (("samples", -5), ("command_timeout", -1.0), ("realtime_priority", 200)):
+            res = plant.set_parameters([Parameter(name, value=value)])[0]
+            assert not res.successful and name in res.reason
+        assert plant.samples == 0 and plant.timeout == 0.5
+    finally:
+        controller.destroy_node()
+        plant.destroy_node()
+
+
+@pytest.mark.parametrize("node, args, culprit", [
+    ("controller", ["-p", "gains.k1:=-1.0"], "gains.k1"),
+    ("plant", ["-p", "samples:=-5"], "samples = -5"),
+    ("plant", ["-p", "command_timeout:=-1.0"], "command_timeout = -1.0"),
+    ("plant", ["-p", "mode:=fast"], "mode = 'fast'"),
+])
+def test_bad_start_up_parameters_end_in_one_line(node, args, culprit, domain_id):
+    import os
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", node, "--ros-args", *args],
+                       env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and culprit in r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
