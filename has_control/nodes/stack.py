@@ -126,13 +126,13 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         closing = time.perf_counter()
         bag = recorder.close() if recorder is not None else None
         close_seconds = time.perf_counter() - closing
-        answered = int(np.count_nonzero(~np.isnan(controller.trace[:, 0])))
-        trace = controller.trace[:answered].copy()
-        if realtime:                           # the command the plant ran with, not only the one computed
-            applied = np.array([row[-1] for row in plant.log])
-            m = min(len(applied), len(trace))
-            trace[:m, 6] = applied[:m]
-        diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
+        if realtime:
+            trace = _plant_trace(plant.log, controller.trace, cfg)
+            diverged = plant.diverged or len(trace) < n
+        else:
+            answered = int(np.count_nonzero(~np.isnan(controller.trace[:, 0])))
+            trace = controller.trace[:answered].copy()
+            diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
         score = score_arrays(trace[:, 7], trace[:, 6], cfg.episode.as_array(), diverged=diverged)
         conflicts = (plant.conflicts, controller.conflicts)
         figures = loop_figures(plant.sample, loop_seconds, cfg.episode.step, plant.failsafe_events, paced)
@@ -151,6 +151,22 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     finally:
         if own:
             rclpy.try_shutdown(context=context)
+
+
+def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndarray:
+    """A paced run's trace from what the plant ran: its states and the command
+    each sample ran with (a held one after a miss), e1 against the reference;
+    the controller's internals where it answered that sample (else NaN)."""
+    from ..episode import EpisodeArrays
+    from ..reference import reference
+    rows = np.array(log, dtype=float).reshape(-1, 6)          # (sample, y, ẏ, P1, P2, u)
+    trace = answered[:len(rows)].copy()
+    t = rows[:, 0] * cfg.episode.step
+    rp = EpisodeArrays.from_config(cfg).reference
+    x1d = np.array([reference(rp, ti)[0] for ti in t])
+    trace[:, 0], trace[:, 1], trace[:, 2:6], trace[:, 6] = t, x1d, rows[:, 1:5], rows[:, 5]
+    trace[:, 7] = x1d - rows[:, 1]                             # SPEC §3: e1 = x1d − x1
+    return trace
 
 
 def _spin_lockstep(executor, plant, samples: int, timeout: float, progress) -> None:
