@@ -110,7 +110,9 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         _wait_for_match(executor, plant, controller)
         gc.collect()
         gc.disable()
+        interrupted = []
         try:
+            _stop_on_signals(plant, interrupted)
             started = time.perf_counter()
             plant.start()
             if realtime:
@@ -123,9 +125,10 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             loop_seconds = time.perf_counter() - started
         finally:
             gc.enable()
-        closing = time.perf_counter()
-        bag = recorder.close() if recorder is not None else None
-        close_seconds = time.perf_counter() - closing
+            _stop_on_signals(None, None)
+            closing = time.perf_counter()
+            bag = recorder.close() if recorder is not None else None    # a clean bag, also after Ctrl-C
+            close_seconds = time.perf_counter() - closing
         if realtime:
             trace = _plant_trace(plant.log, controller.trace, cfg)
             diverged = plant.diverged or len(trace) < n
@@ -134,6 +137,11 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             trace = controller.trace[:answered].copy()
             diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
         score = score_arrays(trace[:, 7], trace[:, 6], cfg.episode.as_array(), diverged=diverged)
+        if interrupted:
+            executor.shutdown()
+            for node in nodes:
+                node.destroy_node()
+            raise KeyboardInterrupt          # after the bag is closed: the caller says "interrupted"
         conflicts = (plant.conflicts, controller.conflicts)
         figures = loop_figures(plant.sample, loop_seconds, cfg.episode.step, plant.failsafe_events, paced)
         run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at,
@@ -151,6 +159,30 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     finally:
         if own:
             rclpy.try_shutdown(context=context)
+
+
+def _stop_on_signals(plant, interrupted: list | None) -> None:
+    """While a run goes (``plant`` given): Ctrl-C and SIGTERM end the episode at
+    the next sample instead of raising inside an rclpy callback; afterwards
+    (``plant`` None) the previous handlers are back."""
+    import signal
+    import threading
+    if threading.current_thread() is not threading.main_thread():
+        return
+    if plant is None:
+        for sig, handler in _previous.items():
+            signal.signal(sig, handler)
+        _previous.clear()
+        return
+
+    def stop(signum, frame):
+        interrupted.append(signum)
+        plant.finished = True
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        _previous[sig] = signal.signal(sig, stop)
+
+
+_previous: dict = {}
 
 
 def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndarray:
