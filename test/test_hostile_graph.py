@@ -19,20 +19,7 @@ from has_control.nodes.plant_node import PlantNode
 from has_control.nodes.stack import run_stack
 from has_control.params import Config
 
-
-@pytest.fixture
-def context(domain_id):
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain_id)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
-def _spin(ex, cond, seconds):
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and not cond():
-        ex.spin_once(timeout_sec=0.01)
-    return cond()
+from test_nodes import _spin_until as _spin, context  # noqa: F401  (the fixture)
 
 
 def test_malformed_and_non_finite_messages_are_counted_and_ignored(context):
