@@ -12,14 +12,15 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["setuptools", "numpy", "numba", "scipy", "matplotlib", "pyyaml"],
+    install_requires=["setuptools", "numpy", "numba", "matplotlib", "pyyaml", "rosbags", "zstandard"],
     zip_safe=True,
     maintainer="has_control maintainers",
     maintainer_email="maintainers@has-control.dev",
     description="Adaptive back-stepping control of a hydraulic suspension actuator, tuned by PSO.",
     license="Apache-2.0",
-    extras_require={"test": ["pytest"]},
+    extras_require={"test": ["pytest", "scipy", "mcap", "mcap-ros2-support"]},
     entry_points={
         "console_scripts": [
             "has-control = has_control.cli:main",

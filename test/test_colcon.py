@@ -71,3 +71,17 @@ def test_plant_and_controller_as_two_processes_track_for_one_second(install, dom
     samples, t, y, events = int(m.group(1)), float(m.group(2)), float(m.group(3)), int(m.group(4))
     assert samples == 3334 and events == 0
     assert abs(y - 0.11 * math.sin(2 * t)) < 1e-4        # tracking the sine to 0.1 mm
+
+
+def test_colcon_installs_the_launch_file(install):
+    """``ros2 launch has_control stack.launch.py`` finds it in share/; it names
+    executables that the install has (launch itself need not be installed here)."""
+    import ast
+    launch = install / "has_control" / "share" / "has_control" / "launch" / "stack.launch.py"
+    assert launch.is_file()
+    tree = ast.parse(launch.read_text())
+    assert any(isinstance(n, ast.FunctionDef) and n.name == "generate_launch_description" for n in tree.body)
+    named = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and n.value in ("plant", "controller")}
+    assert named == {"plant", "controller"}
+    for exe in named:
+        assert (install / "has_control" / "lib" / "has_control" / exe).is_file()
