@@ -309,6 +309,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .swarm import VARIANTS
     p = _Parser(prog="has-control", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
@@ -324,7 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_simulate)
 
     t = sub.add_parser("tune", help="tune k1, k2, k3 with a particle swarm")
-    t.add_argument("--variant", choices=("pso", "pso-cp", "pso-cp-tvac"),
+    t.add_argument("--variant", choices=tuple(VARIANTS),
                    help="optimiser (default: config/tuner.yaml, pso-cp-tvac)")
     t.add_argument("--seed", type=int, help="random seed (default 1)")
     t.add_argument("--particles", type=_positive_int, metavar="N", help="swarm size (default 80)")
@@ -358,7 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="pace the loop to wall time (paced lock-step; misses and lateness in --json)")
     st.add_argument("--tune", action="store_true",
                     help="add the tuner node: tune the gains, set the best on the controller")
-    st.add_argument("--variant", choices=("pso", "pso-cp", "pso-cp-tvac"), help="with --tune")
+    st.add_argument("--variant", choices=tuple(VARIANTS), help="with --tune")
     st.add_argument("--seed", type=int, help="with --tune")
     st.add_argument("--particles", type=_positive_int, metavar="N", help="with --tune")
     st.add_argument("--iterations", type=_positive_int, metavar="N", help="with --tune")

@@ -71,10 +71,9 @@ def _pair(check: Callable[[float], str | None]) -> Callable[[Any], str | None]:
 _SCHEMA: dict[str, tuple[str, str, Any, Callable]] = {}
 
 
-def _register(prefix: str, section: str, fields: Mapping[str, tuple[Any, Callable]], names=None):
+def _register(prefix: str, section: str, fields: Mapping[str, tuple[Any, Callable]]):
     for name, (kind, check) in fields.items():
-        attr = (names or {}).get(name, name)
-        _SCHEMA[f"{prefix}.{name}"] = (section, attr, kind, check)
+        _SCHEMA[f"{prefix}.{name}"] = (section, name, kind, check)
 
 
 _register("actuator", "actuator", {

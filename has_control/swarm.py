@@ -24,7 +24,18 @@ import numpy as np
 
 from .errors import HasControlError
 
-VARIANTS = ("pso", "pso-cp", "pso-cp-tvac")
+@dataclass(frozen=True)
+class Variant:
+    """One optimiser of the table: two independent switches."""
+
+    crazy_particles: bool      # redraw velocity components with probability ρc (SPEC §7)
+    tvac: bool                 # time-varying acceleration coefficients c1, c2
+
+
+#: The optimisers by name (choices of the CLI and the ``swarm.variant`` key).
+VARIANTS = {"pso": Variant(crazy_particles=False, tvac=False),
+            "pso-cp": Variant(crazy_particles=True, tvac=False),
+            "pso-cp-tvac": Variant(crazy_particles=True, tvac=True)}
 CRAZY_REDRAWS = ("positive", "symmetric")
 CRAZY_PROBABILITIES = ("exp-difference", "exp-ratio")
 
@@ -142,12 +153,10 @@ class SwarmResult:
 class Swarm:
     """A particle swarm driven by ask/tell (SPEC §7)."""
 
-    def __init__(self, bounds, settings: SwarmSettings | None = None, seed: int | None = None,
-                 keep_positions: bool = True):
+    def __init__(self, bounds, settings: SwarmSettings | None = None, seed: int | None = None):
         self.settings = (settings or SwarmSettings()).validate()
         self.lower, self.upper = _check_bounds(bounds)
         self.seed = seed
-        self.keep_positions = keep_positions
         self.rng = np.random.default_rng(seed)
         n, m = self.settings.particles, self.lower.size
         vmax = self.settings.velocity_limit
@@ -195,8 +204,7 @@ class Swarm:
             self.iteration, self.gbest_f, self.gbest_x.copy(),
             float(finite.mean()) if finite.size else math.inf,
             float(finite.std()) if finite.size else math.nan,
-            self.x.copy() if self.keep_positions else np.empty((0, self.x.shape[1])),
-            f.copy() if self.keep_positions else np.empty(0)))
+            self.x.copy(), f.copy()))
         self.iteration += 1
         if self.gbest_f <= self.settings.target:
             self.stop_reason = f"best cost {self.gbest_f:.6g} reached the target {self.settings.target:g}"
@@ -208,9 +216,10 @@ class Swarm:
     def _move(self, it: int) -> None:
         """Velocity and position update of iteration ``it`` (SPEC §7)."""
         s = self.settings
+        variant = VARIANTS[s.variant]
         frac = it / s.iterations
         w = s.inertia_max - (s.inertia_max - s.inertia_min) * frac
-        if s.variant == "pso-cp-tvac":
+        if variant.tvac:
             c1 = s.c1_start + (s.c1_end - s.c1_start) * frac
             c2 = s.c2_start + (s.c2_end - s.c2_start) * frac
         else:
@@ -221,7 +230,7 @@ class Swarm:
         v = w * self.v + c1 * r1 * (self.pbest_x - self.x) + c2 * r2 * (self.gbest_x - self.x)
         vmax = s.velocity_limit
         v = np.clip(v, -vmax, vmax)
-        if s.variant in ("pso-cp", "pso-cp-tvac"):
+        if variant.crazy_particles:
             rho = crazy_probability(w, s)
             crazy = self.rng.random(shape) <= rho
             low = 0.0 if s.crazy_redraw == "positive" else -vmax
@@ -325,4 +334,4 @@ def record_from(d: dict) -> IterationRecord:
                            np.array(_unfloats(d["costs"])))
 
 
-__all__ = ["Swarm", "SwarmSettings", "SwarmResult", "SwarmError", "minimize", "VARIANTS"]
+__all__ = ["Swarm", "SwarmSettings", "SwarmResult", "SwarmError", "minimize", "VARIANTS", "Variant"]

@@ -1,7 +1,7 @@
 import sys
 from pathlib import Path
 
-# test helpers (reference_impl) import as plain modules
+# test modules import each other's helpers (e.g. test_episode.PINNED) as plain modules
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import os
