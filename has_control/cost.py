@@ -77,14 +77,9 @@ class Score:
 
     def as_json(self) -> dict:
         """The keys of ``has-control simulate --json``; inf as the string "inf"."""
-        def num(x: float):
-            if math.isinf(x):
-                return "inf" if x > 0 else "-inf"
-            if math.isnan(x):
-                return "nan"
-            return float(x)
-        return {"J": num(self.J), "e_max": num(self.e_max), "e_mu": num(self.e_mu),
-                "e_sigma": num(self.e_sigma), "samples": int(self.samples),
+        from .json_numbers import to_json
+        return {"J": to_json(self.J), "e_max": to_json(self.e_max), "e_mu": to_json(self.e_mu),
+                "e_sigma": to_json(self.e_sigma), "samples": int(self.samples),
                 "diverged": bool(self.diverged)}
 
 

@@ -7,11 +7,12 @@ configuration and writes ``DIR/report.md``, ``DIR/tables.json`` and figures.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from .json_numbers import to_json
 
 from .episode import simulate
 from .params import MANUAL_GAINS, PAPER_TABLE3, PAPER_TUNED_GAINS, Config
@@ -174,8 +175,8 @@ def _k(g, digits: int = 2) -> str:
 
 
 def _jsonable(x):
-    if isinstance(x, (np.floating, np.integer)):
+    if isinstance(x, np.integer):
         return x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return "inf"
+    if isinstance(x, (float, np.floating)):
+        return to_json(x)
     raise TypeError(type(x))

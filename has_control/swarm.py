@@ -22,6 +22,8 @@ from typing import Callable
 
 import numpy as np
 
+from .json_numbers import list_to_json
+
 from .errors import HasControlError
 
 @dataclass(frozen=True)
@@ -248,8 +250,8 @@ class Swarm:
             "settings": asdict(self.settings), "lower": self.lower.tolist(),
             "upper": self.upper.tolist(), "seed": self.seed,
             "rng": self.rng.bit_generator.state, "x": self.x.tolist(), "v": self.v.tolist(),
-            "pbest_x": self.pbest_x.tolist(), "pbest_f": _floats(self.pbest_f),
-            "gbest_x": self.gbest_x.tolist(), "gbest_f": _floats([self.gbest_f])[0],
+            "pbest_x": self.pbest_x.tolist(), "pbest_f": list_to_json(self.pbest_f),
+            "gbest_x": self.gbest_x.tolist(), "gbest_f": list_to_json([self.gbest_f])[0],
             "iteration": self.iteration, "evaluations": self.evaluations,
             "nan_costs": self.nan_costs, "stop_reason": self.stop_reason,
             "history": [record_dict(h) for h in self.history] if history else [],
@@ -262,9 +264,9 @@ class Swarm:
         sw.x = np.array(state["x"], dtype=np.float64)
         sw.v = np.array(state["v"], dtype=np.float64)
         sw.pbest_x = np.array(state["pbest_x"], dtype=np.float64)
-        sw.pbest_f = np.array(_unfloats(state["pbest_f"]), dtype=np.float64)
+        sw.pbest_f = np.array(_from_json(state["pbest_f"]), dtype=np.float64)
         sw.gbest_x = np.array(state["gbest_x"], dtype=np.float64)
-        sw.gbest_f = _unfloats([state["gbest_f"]])[0]
+        sw.gbest_f = _from_json([state["gbest_f"]])[0]
         sw.iteration = int(state["iteration"])
         sw.evaluations = int(state["evaluations"])
         sw.nan_costs = int(state["nan_costs"])
@@ -310,28 +312,23 @@ def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, variant: str
     return swarm.result()
 
 
-def _floats(values) -> list:
-    return [v if math.isfinite(v) else ("inf" if v > 0 else "-inf" if v < 0 else "nan")
-            for v in (float(x) for x in values)]
-
-
-def _unfloats(values) -> list:
+def _from_json(values) -> list:
     return [float(v) for v in values]
 
 
 def record_dict(h: IterationRecord) -> dict:
     """An iteration record as JSON-serialisable data (inverse: :func:`record_from`)."""
-    return {"iteration": h.iteration, "best_cost": _floats([h.best_cost])[0],
-            "best_position": h.best_position.tolist(), "mean_cost": _floats([h.mean_cost])[0],
-            "std_cost": _floats([h.std_cost])[0], "positions": h.positions.tolist(),
-            "costs": _floats(h.costs)}
+    return {"iteration": h.iteration, "best_cost": list_to_json([h.best_cost])[0],
+            "best_position": h.best_position.tolist(), "mean_cost": list_to_json([h.mean_cost])[0],
+            "std_cost": list_to_json([h.std_cost])[0], "positions": h.positions.tolist(),
+            "costs": list_to_json(h.costs)}
 
 
 def record_from(d: dict) -> IterationRecord:
     return IterationRecord(int(d["iteration"]), float(d["best_cost"]), np.array(d["best_position"]),
                            float(d["mean_cost"]), float(d["std_cost"]),
                            np.array(d["positions"], dtype=np.float64).reshape(-1, len(d["best_position"])),
-                           np.array(_unfloats(d["costs"])))
+                           np.array(_from_json(d["costs"])))
 
 
 __all__ = ["Swarm", "SwarmSettings", "SwarmResult", "SwarmError", "minimize", "VARIANTS", "Variant"]

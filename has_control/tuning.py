@@ -6,7 +6,6 @@ node uses the same :func:`load_tuning` and the same :class:`Swarm`.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -115,12 +114,11 @@ class TuneResult:
 
     def as_json(self) -> dict:
         """Keys of ``has-control tune --json``."""
-        def num(x):
-            return float(x) if math.isfinite(x) else "inf"
+        from .json_numbers import to_json
         return {"variant": self.variant, "seed": self.seed, "gains": list(self.gains),
-                "J": num(self.result.fun), "iterations": self.result.nit,
+                "J": to_json(self.result.fun), "iterations": self.result.nit,
                 "evaluations": self.result.nfev, "seconds": self.seconds,
-                "history": [num(h.best_cost) for h in self.result.history]}
+                "history": [to_json(h.best_cost) for h in self.result.history]}
 
 
 def tune(cfg: Config | None = None, tuning: Tuning | None = None,

@@ -3,7 +3,7 @@ import subprocess
 import sys
 
 CORE = ["jit", "params", "config", "actuator", "reference", "abc_controller", "cost", "episode",
-        "swarm", "tuning", "baselines", "cdr", "cli", "wire", "topics", "loop", "mcap_writer"]
+        "swarm", "tuning", "baselines", "cdr", "cli", "wire", "topics", "loop", "mcap_writer", "json_numbers"]
 BAGS = ["bag", "session"]          # rosbags and MCAP, but no rclpy
 
 
