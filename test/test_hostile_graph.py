@@ -64,9 +64,17 @@ def test_a_second_controller_on_the_command_topic_fails_the_run_loudly(domain_id
     other = subprocess.Popen(cmd, env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        time.sleep(3.0)                                  # it is up and discovered
+        probe_ctx = rclpy.Context()
+        rclpy.init(context=probe_ctx, domain_id=domain_id)
+        probe = rclpy.create_node("probe", context=probe_ctx)
+        end = time.monotonic() + 60
+        while time.monotonic() < end and not probe.count_publishers("/command"):
+            time.sleep(0.05)                             # it is up and on the graph
+        assert probe.count_publishers("/command")
+        probe.destroy_node()
+        rclpy.try_shutdown(context=probe_ctx)
         with pytest.raises(HasControlError, match="another node publishes on this loop's topics"):
-            run_stack(with_horizon(Config(), 1.5), domain_id=domain_id)
+            run_stack(Config(), domain_id=domain_id)       # 10 s: long enough to be discovered mid-run
     finally:
         other.kill()
         other.wait()

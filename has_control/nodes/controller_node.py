@@ -28,7 +28,6 @@ run and whenever new gains take effect. Service ``~/reset``
 from __future__ import annotations
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from sensor_msgs.msg import JointState

@@ -76,7 +76,7 @@ def bare_round_trips(samples: int, two_processes: bool, domain: int) -> float:
     try:
         if two_processes:
             echo = subprocess.Popen([sys.executable, "-m", "has_control.nodes.loopbench", "--echo"],
-                                   env=_env(domain), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                    env=_env(domain), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         nodes, pub, state, got = _bare_nodes(ctx, not two_processes)
         ex = EventsExecutor(context=ctx)
         for n in nodes:

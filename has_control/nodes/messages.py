@@ -5,6 +5,8 @@ Names, types, joints and wire layouts of the topics are in
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 from builtin_interfaces.msg import Time
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -61,6 +63,22 @@ def raw_publish(publisher, tap=None):
         publish(data)
         take(data)
     return publish_and_tap
+
+
+@contextmanager
+def borrowed_context(context=None, args=None, domain_id: int | None = None):
+    """``context`` itself, or (None) a new initialised rclpy context that is
+    shut down on the way out."""
+    import rclpy
+    if context is not None:
+        yield context
+        return
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context, domain_id=domain_id)
+    try:
+        yield context
+    finally:
+        rclpy.try_shutdown(context=context)
 
 
 def spin(executor, done=lambda: False, period: float = 0.1) -> None:

@@ -69,7 +69,6 @@ class LoopStats:
             return float("nan")
         return float(np.searchsorted(np.cumsum(self.late_us), q / 100.0 * n))
 
-
     def as_dict(self) -> dict[str, float]:
         rate = (self.samples - 1) / (self.wall_ns / 1e9) if self.wall_ns else float("nan")
         return {"samples": float(self.samples), "rate_hz": rate, "target_hz": 1e9 / self.period_ns,
@@ -166,7 +165,7 @@ def run_paced(executor, plant, *, priority: int = 0,
                     u = 0.0
                 else:
                     u = hold
-            plant.step(u)
+            plant.step(u, answered=not in_a_row)
             stats.samples += 1
             stats.sim_ns = (stats.samples - 1) * period
             stats.wall_ns = last - first

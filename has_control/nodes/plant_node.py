@@ -64,6 +64,8 @@ from .parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.")
 MODES = ("lockstep", "realtime")
+#: Recent samples whose applied answer is kept, to catch a second controller's late answers.
+ANSWERS_KEPT = 4096
 
 
 class PlantNode(Node):
@@ -171,6 +173,7 @@ class PlantNode(Node):
         self.finished = False
         self.diverged = False
         self.command_sample, self.command_u = -1, 0.0
+        self._answered_at, self._answers = [-1] * ANSWERS_KEPT, [0.0] * ANSWERS_KEPT
         loop.encode_state(self.x, self.ap, 0, self.step_ns, self._state_msg, self._clock_msg, self._scratch)
         self._last_publish = time.monotonic()
         self._published = False
@@ -202,11 +205,14 @@ class PlantNode(Node):
         self._last_publish = time.monotonic()
         self._published = True
 
-    def step(self, u: float) -> bool:
-        """Update: advance one sample with valve command u [m]; False when the
+    def step(self, u: float, answered: bool = True) -> bool:
+        """Update: advance one sample with valve command u [m] (``answered``: the
+        controller's answer to it, not a held or fail-safe value); False when the
         episode ends (the diverged state is then published, for the record)."""
         if self.log is not None:
             self.log.append((self.sample, *map(float, self.x), u))
+        k = self.sample % ANSWERS_KEPT
+        self._answered_at[k], self._answers[k] = (self.sample, u) if answered else (-1, 0.0)
         self.sample += 1
         bad = loop.plant_sample(self.x, u, self.ap, self.step_s, self.y_limit, self.sample, self.step_ns,
                                 self._state_msg, self._clock_msg, self._scratch)
@@ -232,7 +238,9 @@ class PlantNode(Node):
             i, u = self._decode_other_layout(data, i)
             if i < 0:
                 return
-        if i == self.command_sample and u != self.command_u:
+        k = i % ANSWERS_KEPT
+        if (i == self.command_sample and u != self.command_u) or (
+                i < self.sample and self._answered_at[k] == i and self._answers[k] != u):
             self._conflict(f"two different commands for sample {i}")
         if i >= self.command_sample:
             self.command_sample, self.command_u = i, u
@@ -292,7 +300,7 @@ class PlantNode(Node):
         limit = self.first_answer_timeout() if self.sample == self._first_sample else self.timeout
         if waited > limit:
             self.failsafe(1)
-            if self.step(0.0):
+            if self.step(0.0, answered=False):
                 self.publish_state()
         elif waited > self.timeout / 4:
             # A controller that has just matched may not have had the state (or we

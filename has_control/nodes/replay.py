@@ -27,7 +27,7 @@ from std_msgs.msg import Float64MultiArray, String
 from .. import cdr
 from ..bag import (CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, STATE, STRING, BagError,
                    read_bag)
-from .messages import CONTROL_QOS, sample_of
+from .messages import CONTROL_QOS, borrowed_context, sample_of
 
 CLASSES = {JOINT_STATE: JointState, CLOCK: Clock, FLOAT64_ARRAY: Float64MultiArray, STRING: String}
 
@@ -54,11 +54,7 @@ def replay(path, rate: float = 1.0, topics: list[str] | None = None,
     if unknown:
         t, ty = next(iter(unknown.items()))
         raise BagError(f"{path}: topic {t} has type {ty}, which replay does not know")
-    own = context is None
-    if own:
-        context = rclpy.Context()
-        rclpy.init(context=context)
-    try:
+    with borrowed_context(context) as context:
         node = rclpy.create_node("replay", context=context)
         pubs = {t: node.create_publisher(CLASSES[bag.types[t]], t, _qos(bag.qos.get(t, "")))
                 for t in bag.types if bag.messages.get(t)}
@@ -82,9 +78,6 @@ def replay(path, rate: float = 1.0, topics: list[str] | None = None,
         seconds = time.perf_counter() - t0
         node.destroy_node()
         return count, seconds
-    finally:
-        if own:
-            rclpy.try_shutdown(context=context)
 
 
 def _time(ns: int):
@@ -121,11 +114,7 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
     except (BagError, IndexError):
         pass                                          # the stored parameters' gains
     n = min(len(states), len(recorded_u))
-    own = context is None
-    if own:
-        context = rclpy.Context()
-        rclpy.init(context=context)
-    try:
+    with borrowed_context(context) as context:
         ns = "/replay"
         controller = ControllerNode(namespace=ns, context=context, parameter_overrides=[
             Parameter(k, value=v) for k, v in params.items()] + [Parameter("publish_internals", value=False)])
@@ -157,9 +146,6 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
         ex.shutdown()
         controller.destroy_node()
         driver.destroy_node()
-    finally:
-        if own:
-            rclpy.try_shutdown(context=context)
     bad = np.flatnonzero(~(diffs <= tolerance))
     return ReplayCheck(n, int(bad.size), float(diffs.max()) if n else 0.0,
                        int(bad[0]) if bad.size else None)

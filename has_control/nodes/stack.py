@@ -21,6 +21,7 @@ from rclpy.parameter import Parameter
 from ..cost import Score, score_arrays
 from ..params import Config
 from .controller_node import ControllerNode
+from .messages import borrowed_context
 from .plant_node import PlantNode
 
 
@@ -80,11 +81,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     if gains is not None:
         cfg = build_config({"gains.k1": float(gains[0]), "gains.k2": float(gains[1]),
                             "gains.k3": float(gains[2])}, source="--gains", base=cfg)
-    own = context is None
-    if own:
-        context = rclpy.Context()
-        rclpy.init(args=args, context=context, domain_id=domain_id)
-    try:
+    with borrowed_context(context, args=args, domain_id=domain_id) as context:
         t0 = time.perf_counter()
         params = _overrides(cfg)
         n = cfg.episode.samples
@@ -156,9 +153,18 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         return run
-    finally:
-        if own:
-            rclpy.try_shutdown(context=context)
+
+
+def _refuse_strangers(plant, controller) -> None:
+    """Another publisher on the loop's state or command topic (a second
+    controller, a second stack in this namespace) would mix its numbers into
+    this run: refuse to start."""
+    from ..errors import HasControlError
+    for node, topic in ((plant, controller._state_topic), (controller, plant._command_topic)):
+        n = node.count_publishers(topic)
+        if n > 1:
+            raise HasControlError(f"{topic}: {n} publishers; another node publishes on this loop's topics, "
+                                  "so the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
 
 
 def _stop_on_signals(plant, interrupted: list | None) -> None:
@@ -227,6 +233,7 @@ def _wait_for_match(executor, plant, controller, timeout: float = 10.0) -> None:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if plant.state_pub.get_subscription_count() and controller.command_pub.get_subscription_count():
+            _refuse_strangers(plant, controller)
             return
         executor.spin_once(timeout_sec=0.01)
     raise RuntimeError("plant and controller did not discover each other within "
@@ -247,11 +254,7 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
     from .tuner_node import TunerNode, tuning_parameters
     tuning = load_tuning(config_files).replace(**changes)
     namespaces = namespaces or [""]
-    own = context is None
-    if own:
-        context = rclpy.Context()
-        rclpy.init(context=context, domain_id=domain_id)
-    try:
+    with borrowed_context(context, domain_id=domain_id) as context:
         model = _overrides(cfg)
         nodes = []
         for ns in namespaces:
@@ -279,6 +282,3 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
         if tuner.result is None:
             raise RuntimeError(f"the tuner did not finish within {timeout:g} s")
         return tuner.result
-    finally:
-        if own:
-            rclpy.try_shutdown(context=context)
