@@ -283,3 +283,37 @@ def config_parameters(cfg: Config) -> dict[str, Any]:
         v = getattr(getattr(cfg, section), attr)
         out[key] = list(v) if kind == "pair" else v
     return out
+
+
+def parameter_kind(key: str) -> tuple[Any, tuple[float, bool] | None]:
+    """What a config key takes, for parameter descriptors: its kind ("float",
+    "pair" or a dict of allowed strings) and its lower bound (value, inclusive)
+    if its check has one."""
+    _, _, kind, check = _SCHEMA[key]
+    bound = {_positive: (0.0, False), _non_negative: (0.0, True)}.get(check)
+    if bound is None and kind == "pair":
+        bound = {"gain": (0.0, True)}.get(key.rsplit(".", 1)[-1])
+    return kind, bound
+
+
+def parameter_comments(files: Iterable[str | Path] | None = None) -> dict[str, str]:
+    """The comment after each key in the shipped YAML files (their units and
+    meaning), by dotted key, for parameter descriptors."""
+    out: dict[str, str] = {}
+    for f in files if files is not None else default_config_files():
+        stack: list[tuple[int, str, str]] = []          # (indent, section, its comment)
+        for line in Path(f).read_text().splitlines():
+            m = re.match(r"^(\s*)([A-Za-z_][\w]*):\s*([^#]*?)\s*(?:#\s*(.*))?$", line)
+            if not m:
+                continue
+            indent, key, value, comment = len(m.group(1)), m.group(2), m.group(3), (m.group(4) or "").strip()
+            while stack and stack[-1][0] >= indent:
+                stack.pop()
+            if value:
+                dotted = ".".join([k for _, k, _ in stack if k != "ros__parameters"] + [key])
+                inherited = next((c for _, _, c in reversed(stack) if c), "")
+                if comment or inherited:
+                    out[dotted] = comment or inherited
+            else:
+                stack.append((indent, key, comment))
+    return out

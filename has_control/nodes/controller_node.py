@@ -14,7 +14,7 @@ Parameters: ``gains.k1..k3`` [1/s] (> 0), ``adaptation.*``, ``reference.*``,
 the model ``actuator.*`` and ``simulation.step``. A parameter set that the
 core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
 and the old values stay; accepted changes apply from the next sample.
-``simulation.*`` (the step must be the plant's) is read at start-up only.
+``simulation.*`` (the step must be the plant's) is read-only after start-up.
 
 Topics (layouts in :mod:`has_control.topics`): ``state`` (in), ``command``
 (out), and std_msgs/Float64MultiArray leading with the sample's simulation
@@ -49,7 +49,7 @@ class ControllerNode(Node):
     def __init__(self, name: str = "controller", tap=None, **kwargs):
         """``tap(topic)``: a function taking every message published on ``topic`` (an in-process observer)."""
         super().__init__(name, **kwargs)
-        declare_config(self, PREFIXES)
+        declare_config(self, PREFIXES, read_only=("simulation.",))
         self.declare_parameter("publish_internals", True)
         self._mem = np.zeros(loop.CONTROLLER_MEMORY)
         self._command = COMMAND_LAYOUT.buffer()
@@ -120,11 +120,6 @@ class ControllerNode(Node):
         changes = {p.name: p.value for p in params if p.name.startswith(PREFIXES)}
         if not changes:
             return SetParametersResult(successful=True)
-        fixed = sorted(k for k in changes if k.startswith("simulation."))
-        if fixed:
-            reason = f"{fixed[0]}: read at start-up only (the plant's step); restart the controller to change it"
-            self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
-            return SetParametersResult(successful=False, reason=reason)
         try:
             cfg = config_from_node(self, PREFIXES, overrides=changes)
         except ConfigError as exc:

@@ -1,30 +1,46 @@
 """Declare a Config as ROS parameters and read it back, validated by the core."""
 from __future__ import annotations
 
+import sys
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.node import Node
 
-from ..config import build_config, config_parameters, load_config
+from ..config import build_config, config_parameters, load_config, parameter_comments, parameter_kind
 from ..params import Config
 
 
-def declare_config(node: Node, prefixes: tuple[str, ...], cfg: Config | None = None) -> None:
+def declare_config(node: Node, prefixes: tuple[str, ...], cfg: Config | None = None,
+                   read_only: tuple[str, ...] = ()) -> None:
     """Declare every parameter of ``cfg`` under ``prefixes`` (e.g. 'actuator.', 'gains.').
 
     Defaults come from the shipped config/*.yaml; a ``--params-file`` overrides
-    them. Gains carry a range descriptor (> 0 is enforced by the core as well).
+    them. Each descriptor carries the meaning and unit (the YAML's comment),
+    the range the core enforces (> 0 excludes 0), the allowed strings of an
+    enumeration, and ``read_only`` for keys under ``read_only`` (read at start-up).
     """
     cfg = cfg or load_config()
+    comments = parameter_comments()
     for key, value in config_parameters(cfg).items():
-        if not key.startswith(prefixes):
-            continue
-        desc = ParameterDescriptor(description=f"has_control {key} (SI units)")
-        if key.startswith("gains."):
-            desc.floating_point_range = [FloatingPointRange(from_value=0.0, to_value=1.0e6, step=0.0)]
-            desc.description = f"back-stepping gain {key[-2:]} [1/s], > 0"
-        node.declare_parameter(key, value, desc)
+        if key.startswith(prefixes):
+            node.declare_parameter(key, value, describe(key, comments.get(key, key), key.startswith(read_only)))
+
+
+def describe(key: str, text: str, read_only: bool = False) -> ParameterDescriptor:
+    """The descriptor of config key ``key`` with description ``text``."""
+    kind, bound = parameter_kind(key)
+    desc = ParameterDescriptor(description=text, read_only=read_only)
+    if isinstance(kind, dict):
+        desc.additional_constraints = f"one of: {', '.join(kind)}"
+    elif bound is not None:
+        lower, inclusive = bound
+        if kind == "float":
+            desc.floating_point_range = [FloatingPointRange(
+                from_value=lower if inclusive else sys.float_info.min, to_value=sys.float_info.max, step=0.0)]
+        else:
+            desc.additional_constraints = f"each {'>=' if inclusive else '>'} {lower:g}"
+    return desc
 
 
 def config_from_node(node: Node, prefixes: tuple[str, ...],

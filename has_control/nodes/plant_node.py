@@ -50,7 +50,7 @@ import time
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import SetParametersResult
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -64,6 +64,17 @@ from .parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.")
 MODES = ("lockstep", "realtime")
+#: The plant's own parameters: (name, default, meaning and unit).
+OWN_PARAMETERS = (
+    ("mode", "lockstep", "lockstep (as fast as the controller answers) | realtime (paced to wall time)"),
+    ("command_timeout", 0.5, "lock-step: wait this long for a command before the fail-safe [s of wall time]"),
+    ("startup_timeout", 5.0, "the first answer of a run, while a matched controller has not answered [s]"),
+    ("failsafe_samples", 10, "realtime: misses in a row before the valve is centred [samples]"),
+    ("realtime_priority", 50, "realtime: SCHED_FIFO priority of the loop, 0..99 (0: normal scheduling)"),
+    ("samples", 0, "samples per episode (0: until stopped)"),
+    ("autostart", True, "start the first episode when a controller connects"),
+    ("keep_alive", False, "keep serving ~/start after an episode"),
+)
 #: Recent samples whose applied answer is kept, to catch a second controller's late answers.
 ANSWERS_KEPT = 4096
 
@@ -72,15 +83,11 @@ class PlantNode(Node):
     def __init__(self, name: str = "plant", tap=None, **kwargs):
         """``tap(topic)``: a function taking every state and clock message published (an in-process observer)."""
         super().__init__(name, **kwargs)
-        declare_config(self, PREFIXES)
-        self.declare_parameter("mode", "lockstep")
-        self.declare_parameter("command_timeout", 0.5)
-        self.declare_parameter("startup_timeout", 5.0)
-        self.declare_parameter("failsafe_samples", 10)
-        self.declare_parameter("realtime_priority", 50)
-        self.declare_parameter("samples", 0)        # 0: run until stopped
-        self.declare_parameter("autostart", True)
-        self.declare_parameter("keep_alive", False)
+        declare_config(self, PREFIXES, read_only=PREFIXES)
+        for name, value, text in OWN_PARAMETERS:
+            self.declare_parameter(name, value, ParameterDescriptor(
+                description=text, read_only=name in ("mode", "realtime_priority"),
+                additional_constraints=f"one of: {', '.join(MODES)}" if name == "mode" else ""))
         for name in ("mode", "command_timeout", "startup_timeout", "failsafe_samples", "realtime_priority", "samples"):
             reason = self._invalid(name, self.get_parameter(name).value)
             if reason is not None:
@@ -152,7 +159,7 @@ class PlantNode(Node):
     def _on_set_parameters(self, params) -> SetParametersResult:
         for p in params:
             reason = self._invalid(p.name, p.value)
-            if reason is None and (p.name.startswith(PREFIXES) or p.name in ("mode", "realtime_priority")):
+            if reason is None and p.name in ("mode", "realtime_priority"):
                 reason = f"{p.name}: read at start-up only; restart the plant to change it"
             if reason is not None:
                 return SetParametersResult(successful=False, reason=reason)
