@@ -21,6 +21,7 @@ from rclpy.parameter import Parameter
 from ..cost import Score, score_arrays
 from ..params import Config
 from .controller_node import ControllerNode
+from .messages import tee
 from .plant_node import PlantNode
 
 
@@ -65,7 +66,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
               context: rclpy.Context | None = None, timeout: float = 600.0,
               domain_id: int | None = None, record: str | Path | None = None,
               realtime: bool = False, priority: int = 50,
-              progress: Callable[[int, int, float], None] | None = None) -> StackRun:
+              progress: Callable[[int, int, float], None] | None = None,
+              foxglove: int | None = None) -> StackRun:
     """Run one episode through plant and controller nodes composed in this
     process (the ros2_control layout), lock-step or, with ``realtime``, paced
     to wall time (SCHED_FIFO at ``priority`` where permitted).
@@ -73,7 +75,9 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     ``record``: also record the run to a rosbag2 MCAP bag at this path, from
     the bytes the nodes publish (the controller then publishes its internals,
     which the bag needs for scoring). ``progress(samples done, samples,
-    samples/s)`` is called about once a second.
+    samples/s)`` is called about once a second. ``foxglove``: also serve the
+    run's topics live on a Foxglove WebSocket at this port of 127.0.0.1
+    (:class:`~has_control.nodes.foxglove.LiveView`) for the run.
     """
     from ..config import build_config
     cfg = cfg or Config()
@@ -84,16 +88,20 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     if own:
         context = rclpy.Context()
         rclpy.init(args=args, context=context, domain_id=domain_id)
+    live = None
     try:
         t0 = time.perf_counter()
         params = _overrides(cfg)
         n = cfg.episode.samples
-        recorder = tap = None
+        if foxglove is not None:                 # first: a port in use ends the run before a bag exists
+            from .foxglove import LiveView
+            live = LiveView(foxglove)
+        recorder = None
         if record is not None:
             from .recorder import Recorder
             recorder = Recorder(namespace=namespace, subscribe=False)
             recorder.open(record, cfg)
-            tap = recorder.sink
+        tap = tee(recorder and recorder.sink, live and live.sink)
         plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
             params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
                        Parameter("mode", value="realtime" if realtime else "lockstep")])
@@ -157,6 +165,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         return run
     finally:
+        if live is not None:
+            live.close()
         if own:
             rclpy.try_shutdown(context=context)
 
