@@ -16,6 +16,7 @@ from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 from test_nodes import context  # noqa: F401  (fixture)
 
+from has_control.bag import msgdef
 from has_control.errors import HasControlError
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.foxglove import LiveView
@@ -97,6 +98,7 @@ def test_stack_serves_the_state_live_as_ros2msg_cdr(domain_id):
     state = channels["/state"]
     assert (state["encoding"], state["schemaEncoding"], state["schemaName"]) == (
         "cdr", "ros2msg", "sensor_msgs/msg/JointState")
+    assert state["schema"] == msgdef("sensor_msgs/msg/JointState")       # the text our bags hold
     assert state["schema"].startswith("std_msgs/Header header\nstring[] name\n")
     assert {channels[t]["schemaName"] for t in ("/controller/gains", "/controller/reference")} == {
         "std_msgs/msg/Float64MultiArray"}

@@ -47,9 +47,8 @@ def check_port(port, what: str) -> int:
 def _schema(msgtype: str):
     import foxglove
 
-    from ..bag import typestore
-    text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
-    return foxglove.Schema(name=msgtype, encoding="ros2msg", data=text.encode())
+    from ..bag import msgdef
+    return foxglove.Schema(name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode())
 
 
 class LiveView:
