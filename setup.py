@@ -20,7 +20,8 @@ setup(
     maintainer_email="maintainers@has-control.dev",
     description="Adaptive back-stepping control of a hydraulic suspension actuator, tuned by PSO.",
     license="Apache-2.0",
-    extras_require={"test": ["pytest", "scipy", "mcap", "mcap-ros2-support"]},
+    extras_require={"test": ["pytest", "scipy", "mcap", "mcap-ros2-support", "foxglove-sdk", "websockets"],
+                    "live": ["foxglove-sdk"]},             # has-control stack --foxglove, foxglove_port
     entry_points={
         "console_scripts": [
             "has-control = has_control.cli:main",

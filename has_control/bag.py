@@ -61,6 +61,12 @@ def typestore():
     return get_typestore(getattr(Stores, f"ROS2_{ROS_DISTRO.upper()}"))
 
 
+def msgdef(msgtype: str) -> str:
+    """The ``ros2msg`` schema text of ``msgtype`` (as rosbag2 writes it into MCAP)."""
+    text, _ = typestore().generate_msgdef(msgtype, ros_version=2)
+    return text
+
+
 @dataclass(frozen=True)
 class QosSpec:
     """The QoS a topic was offered with, as rosbag2 stores it."""
@@ -129,8 +135,7 @@ class BagWriter:
             return
         ts = typestore()
         if msgtype not in self._schemas:
-            text, _ = ts.generate_msgdef(msgtype, ros_version=2)
-            self._schemas[msgtype] = self._mcap.add_schema(msgtype, "ros2msg", text.encode())
+            self._schemas[msgtype] = self._mcap.add_schema(msgtype, "ros2msg", msgdef(msgtype).encode())
         profiles, type_hash = qos.profiles(), ts.hash_rihs01(msgtype)
         channel = self._mcap.add_channel(topic, self._schemas[msgtype], "cdr", {
             "offered_qos_profiles": _yaml(profiles).strip(), "topic_type_hash": type_hash})

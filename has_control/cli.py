@@ -187,6 +187,8 @@ def cmd_stack(args) -> int:
     cfg = _load(args)
     gains = _gains_arg(args.gains) if args.gains else None
     if args.tune:
+        if args.foxglove is not None:
+            raise HasControlError("--foxglove: not with --tune (the live view serves one run)")
         return _stack_tune(args, cfg)
     record = _new_bag_path(args.record) if args.record else None
     mode = "realtime" if args.realtime else "lock-step"
@@ -196,7 +198,8 @@ def cmd_stack(args) -> int:
         line.show(f"stack ({mode}): {done:,} of {total:,} samples, {rate:,.0f} samples/s")
     try:
         run = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True, record=record,
-                        realtime=args.realtime, progress=progress if line and line.enabled else None)
+                        realtime=args.realtime, progress=progress if line and line.enabled else None,
+                        foxglove=args.foxglove)
     finally:
         if line:
             line.close()
@@ -215,6 +218,8 @@ def cmd_stack(args) -> int:
                   f"lateness p99 {late}")
         if run.bag:
             print(f"recorded {run.bag}")
+        if args.foxglove is not None:
+            print(f"served live on ws://127.0.0.1:{args.foxglove} (closed)")
     return 0
 
 
@@ -301,6 +306,16 @@ def _positive_int(text: str) -> int:
     return v
 
 
+def _port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a port 1..65535") from None
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a port 1..65535")
+    return v
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors (no usage block) and exit status 2."""
 
@@ -355,6 +370,8 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
     st.add_argument("--json", action="store_true", help="print the keys of simulate --json")
     st.add_argument("--record", metavar="DIR", help="record the run to a rosbag2 MCAP bag DIR")
+    st.add_argument("--foxglove", nargs="?", type=_port, const=8765, metavar="PORT",
+                    help="serve the run's topics live to Foxglove on ws://127.0.0.1:PORT (default 8765)")
     st.add_argument("--realtime", action="store_true",
                     help="pace the loop to wall time (paced lock-step; misses and lateness in --json)")
     st.add_argument("--tune", action="store_true",

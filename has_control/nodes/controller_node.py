@@ -22,7 +22,9 @@ time t [s] (the type has no header): ``~/controller_state`` [t, e1 [m],
 e2 [m/s], e3 [N], â1, â2, x1d [m]], ``~/reference`` [t, x1d [m], ẋ1d [m/s],
 ẍ1d [m/s²], x1d⁽³⁾ [m/s³]] (both when ``publish_internals``), and ``~/gains``
 [t, k1, k2, k3] [1/s] (transient local), published at the first sample of each
-run and whenever new gains take effect. Service ``~/reset``
+run and whenever new gains take effect. Parameter ``foxglove_port``: serve
+these topics live on a Foxglove WebSocket at this port of 127.0.0.1
+(:mod:`has_control.nodes.foxglove`; 0: off). Service ``~/reset``
 (std_srvs/Trigger): estimates back to â(0), the next state starts a new run.
 """
 from __future__ import annotations
@@ -39,6 +41,7 @@ from ..errors import ConfigError
 from ..topics import (COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, GAINS_LAYOUT, REFERENCE_LAYOUT, STATE,
                       STATE_LAYOUT)
 from ..wire import NOT_FINITE, get_stamp
+from .foxglove import node_tap
 from .messages import CONTROL_QOS, LATCHED_QOS, node_main, raw_publish, spin, trigger_service
 from .parameters import config_from_node, declare_config
 
@@ -63,6 +66,7 @@ class ControllerNode(Node):
         self.reset()
         self._warm_up()
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         self.command_pub = self.create_publisher(JointState, COMMAND, CONTROL_QOS)
         self.internals_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
         self.reference_pub = self.create_publisher(Float64MultiArray, "~/reference", 10)

@@ -81,6 +81,23 @@ def borrowed_context(context=None, args=None, domain_id: int | None = None):
         rclpy.try_shutdown(context=context)
 
 
+def tee(*taps):
+    """One tap that hands each message to every one of ``taps`` (None: left
+    out), e.g. a bag and a live view at once; a single tap is returned as is."""
+    taps = [t for t in taps if t is not None]
+    if len(taps) <= 1:
+        return taps[0] if taps else None
+
+    def tap(topic: str):
+        takes = tuple(t(topic) for t in taps)
+
+        def take(data: bytes) -> None:
+            for f in takes:
+                f(data)
+        return take
+    return tap
+
+
 def spin(executor, done=lambda: False, period: float = 0.1) -> None:
     """Serve ``executor`` until ``done()`` or shutdown (Ctrl-C, SIGTERM).
 

@@ -42,7 +42,9 @@ Parameters: ``actuator.*``, ``simulation.*``, ``mode``, ``samples``,
 ``command_timeout`` [s], ``startup_timeout`` [s], ``failsafe_samples``, ``realtime_priority``
 (SCHED_FIFO priority, 0: normal scheduling), ``autostart`` (``main`` starts
 the first episode when a controller connects), ``keep_alive`` (``main`` keeps
-serving ``~/start`` after an episode instead of exiting).
+serving ``~/start`` after an episode instead of exiting), ``foxglove_port``
+(serve ``state`` and ``clock`` live on a Foxglove WebSocket at this port of
+127.0.0.1, :mod:`has_control.nodes.foxglove`; 0: off).
 """
 from __future__ import annotations
 
@@ -58,6 +60,7 @@ from sensor_msgs.msg import JointState
 from .. import loop
 from ..topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
 from ..wire import NOT_FINITE
+from .foxglove import node_tap
 from .messages import CONTROL_QOS, node_main, raw_publish, sample_of, trigger_service
 from .pacing import LoopStats, run_paced
 from .parameters import config_from_node, declare_config
@@ -108,6 +111,7 @@ class PlantNode(Node):
         self._clock_msg = CLOCK_LAYOUT.buffer()
         self._scratch = loop.scratch()
         self._warm_up()
+        tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
         self._publish_state = raw_publish(self.state_pub, tap)

@@ -21,7 +21,7 @@ from rclpy.parameter import Parameter
 from ..cost import Score, score_arrays
 from ..params import Config
 from .controller_node import ControllerNode
-from .messages import borrowed_context
+from .messages import borrowed_context, tee
 from .plant_node import PlantNode
 
 
@@ -66,7 +66,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
               context: rclpy.Context | None = None, timeout: float = 600.0,
               domain_id: int | None = None, record: str | Path | None = None,
               realtime: bool = False, priority: int = 50,
-              progress: Callable[[int, int, float], None] | None = None) -> StackRun:
+              progress: Callable[[int, int, float], None] | None = None,
+              foxglove: int | None = None) -> StackRun:
     """Run one episode through plant and controller nodes composed in this
     process (the ros2_control layout), lock-step or, with ``realtime``, paced
     to wall time (SCHED_FIFO at ``priority`` where permitted).
@@ -74,23 +75,25 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     ``record``: also record the run to a rosbag2 MCAP bag at this path, from
     the bytes the nodes publish (the controller then publishes its internals,
     which the bag needs for scoring). ``progress(samples done, samples,
-    samples/s)`` is called about once a second.
+    samples/s)`` is called about once a second. ``foxglove``: also serve the
+    run's topics live on a Foxglove WebSocket at this port of 127.0.0.1
+    (:class:`~has_control.nodes.foxglove.LiveView`) for the run.
     """
     from ..config import build_config
     cfg = cfg or Config()
     if gains is not None:
         cfg = build_config({"gains.k1": float(gains[0]), "gains.k2": float(gains[1]),
                             "gains.k3": float(gains[2])}, source="--gains", base=cfg)
-    with borrowed_context(context, args=args, domain_id=domain_id) as context:
+    with borrowed_context(context, args=args, domain_id=domain_id) as context, _live_view(foxglove) as live:
         t0 = time.perf_counter()
         params = _overrides(cfg)
         n = cfg.episode.samples
-        recorder = tap = None
+        recorder = None
         if record is not None:
             from .recorder import Recorder
             recorder = Recorder(namespace=namespace, subscribe=False)
             recorder.open(record, cfg)
-            tap = recorder.sink
+        tap = tee(recorder and recorder.sink, live and live.sink)
         plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
             params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
                        Parameter("mode", value="realtime" if realtime else "lockstep")])
@@ -153,6 +156,16 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         return run
+
+
+def _live_view(port: int | None):
+    """The Foxglove live view on ``port`` (None: none). Opened before the bag, so
+    a port in use ends the run before a bag exists; closed with the run."""
+    if port is None:
+        from contextlib import nullcontext
+        return nullcontext()
+    from .foxglove import LiveView
+    return LiveView(port)
 
 
 def _refuse_strangers(plant, controller) -> None:
