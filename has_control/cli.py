@@ -151,10 +151,13 @@ def cmd_tune(args) -> int:
         progress.close()
     out = res.as_json()
     if args.out:
+        from .config import write_gains_params
         from .plots import plot_convergence, plot_gains
         d = Path(args.out)
         bag = session.finish(out, simulate(cfg, res.gains), cfg)
         (d / "tune.json").write_text(json.dumps(out, indent=1) + "\n")
+        write_gains_params(d / "gains.yaml", res.gains, f"has-control tune: {res.variant}, seed {res.seed}, "
+                           f"J = {res.result.fun:.6e}; use with --ros-args --params-file")
         plot_convergence([(res.variant, res.result)], d / "convergence.png")
         plot_gains(res.result, d / "gains.png", f"{res.variant}, seed {res.seed}")
     if args.json:
@@ -165,7 +168,8 @@ def cmd_tune(args) -> int:
               f"J = {res.result.fun:.6e} after {res.result.nit} iterations, "
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
         if args.out:
-            print(f"wrote {Path(args.out) / 'tune.json'}, convergence.png, gains.png and the session bag {bag}")
+            print(f"wrote {Path(args.out) / 'tune.json'}, gains.yaml (a --params-file for the controller), "
+                  f"convergence.png, gains.png and the session bag {bag}")
     return 0
 
 
@@ -349,7 +353,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ros__parameters YAML (episode and swarm.* keys; repeatable)")
     t.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
     t.add_argument("--out", metavar="DIR",
-                   help="write the session bag DIR/session (resumable), tune.json, convergence.png, gains.png")
+                   help="write the session bag DIR/session (resumable), tune.json, gains.yaml (--params-file), "
+                        "convergence.png, gains.png")
     t.add_argument("--resume", metavar="DIR",
                    help="continue the session in DIR from its last complete iteration (its settings apply)")
     t.add_argument("--json", action="store_true", help="print one JSON object")

@@ -317,3 +317,21 @@ def parameter_comments(files: Iterable[str | Path] | None = None) -> dict[str, s
             else:
                 stack.append((indent, key, comment))
     return out
+
+
+def gains_params_yaml(gains, note: str = "") -> str:
+    """A ``--params-file`` that sets ``gains.k1..k3`` [1/s] on every node that
+    declares them (``/**``: the controller in any namespace), as rcl reads it."""
+    k = [float(g) for g in gains]
+    head = f"# {note}\n" if note else ""
+    return (head + "/**:\n  ros__parameters:\n    gains:\n"
+            + "".join(f"      k{i + 1}: {v!r}\n" for i, v in enumerate(k)))
+
+
+def write_gains_params(path: str | Path, gains, note: str = "") -> Path:
+    """Write :func:`gains_params_yaml` to ``path`` (through a temporary file, then renamed)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(gains_params_yaml(gains, note))
+    tmp.replace(path)
+    return path

@@ -18,8 +18,9 @@ Parameters: ``swarm.*`` (config/tuner.yaml), the model and episode
 files as plant and controller), ``evaluator`` (graph | batch),
 ``validate_best``, ``lanes`` (namespaces; ``[""]`` is the root), ``controller``
 and ``plant`` (node names within a lane), ``record`` (a directory: the
-session bag ``record/session`` and, for graph evaluation, one bag per
-episode under ``record/episodes``; empty: episodes go to a temporary
+session bag ``record/session``, the best gains as a ``--params-file``
+``record/gains.yaml`` and, for graph evaluation, one bag per episode under
+``record/episodes``; empty: episodes go to a temporary
 directory), ``resume`` (a directory of an interrupted session),
 ``episode_timeout`` [s of wall time], ``log_every`` (log every n-th iteration).
 Topic ``~/progress`` (std_msgs/Float64MultiArray): [iteration, best J,
@@ -272,6 +273,11 @@ class TunerNode(Node):
                          f"J = {validation.J:.6e} (batch J = {res.result.fun:.6e})")
             if session is not None:
                 session.finish(out)
+            if record:
+                from ..config import write_gains_params
+                out["gains_file"] = str(write_gains_params(
+                    Path(record) / "gains.yaml", best, f"has_control tuner: {out['variant']}, seed {out['seed']}, "
+                    f"J = {res.result.fun:.6e}; use with --ros-args --params-file"))
             out["controller_gains"] = self.lanes[0].gains()
             return out
         finally:

@@ -1,0 +1,39 @@
+"""The tuned gains as a ROS params file that a controller starts with."""
+import json
+import subprocess
+import sys
+
+import rclpy
+
+from has_control.nodes.controller_node import ControllerNode
+
+
+def test_tune_out_writes_a_params_file_the_controller_starts_with(tmp_path, domain_id):
+    out = tmp_path / "session"
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tune", "--particles", "4", "--iterations", "2",
+                        "--duration", "1.5", "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    tuned = json.loads((out / "tune.json").read_text())["gains"]
+    for namespace in ("", "/sim0"):                       # /** reaches a controller in any namespace
+        ctx = rclpy.Context()
+        rclpy.init(args=["--ros-args", "--params-file", str(out / "gains.yaml")], context=ctx, domain_id=domain_id)
+        node = ControllerNode(context=ctx, namespace=namespace)
+        try:
+            got = [node.get_parameter(f"gains.k{i}").value for i in (1, 2, 3)]
+            assert got == tuned and list(node.k) == tuned          # read back, bit for bit
+        finally:
+            node.destroy_node()
+            rclpy.try_shutdown(context=ctx)
+
+
+def test_the_tuner_node_writes_the_params_file_too(tmp_path, domain_id):
+    import os
+    import yaml
+    rec = tmp_path / "rec"
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "stack", "--tune", "--iterations", "1",
+                        "--particles", "2", "--duration", "1.5", "--record", str(rec), "--json"],
+                       capture_output=True, text=True, timeout=600, env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    params = yaml.safe_load((rec / "gains.yaml").read_text())["/**"]["ros__parameters"]["gains"]
+    assert [params["k1"], params["k2"], params["k3"]] == out["gains"] and out["gains_file"] == str(rec / "gains.yaml")
