@@ -272,6 +272,7 @@ class Bag:
     complete: bool = True
     lost_bytes: int = 0
     size: int = 0
+    on_warning: Callable[[str], None] = field(default=warn, repr=False)
 
     def count(self, topic: str) -> int:
         return len(self.messages.get(topic, ()))
@@ -292,7 +293,7 @@ class Bag:
         overrides = list(overrides)
         stored = self.custom_data.get(PARAMETERS_KEY)
         if stored is None:
-            warn(f"{self.path}: no {PARAMETERS_KEY} in the bag; scoring with the shipped configuration")
+            self.on_warning(f"{self.path}: no {PARAMETERS_KEY} in the bag; scoring with the shipped configuration")
             return load_config(overrides)
         try:
             flat = json.loads(stored)
@@ -320,7 +321,7 @@ def read_bag(path: str | Path, topics: Iterable[str] | None = None,
     if not path.exists():
         raise BagError(f"{path}: no such bag (directory or .mcap file)")
     wanted = set(topics) if topics is not None else None
-    bag = Bag(path, [])
+    bag = Bag(path, [], on_warning=on_warning)
     if path.is_dir():
         meta = path / "metadata.yaml"
         mcaps = sorted(path.glob("*.mcap"))
@@ -545,10 +546,12 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = ()) -> RecordedRun:
                        ref[:m, 1], diverged, cfg)
 
 
-def score_bag(path: str | Path, overrides: Iterable[str | Path] = ()):
-    """J, e_max, e_μ, e_σ of a recorded lock-step run (SPEC §6), as the core scores it."""
+def score_bag(path: str | Path, overrides: Iterable[str | Path] = (),
+              on_warning: Callable[[str], None] = warn):
+    """J, e_max, e_μ, e_σ of a recorded lock-step run (SPEC §6), as the core
+    scores it; warnings (truncation, missing parameters) go to ``on_warning``."""
     from .cost import score_arrays
-    bag = read_bag(path, topics=None)
+    bag = read_bag(path, topics=None, on_warning=on_warning)
     run = recorded_run(bag, overrides)
     return score_arrays(run["e1"], run.u, run.cfg.episode.as_array(), diverged=run.diverged), run
 

@@ -140,7 +140,7 @@ class Lane:
                                 f"within {timeout:g} s; scored +inf")
             return math.inf
         try:
-            score, _ = score_bag(bag)
+            score, _ = score_bag(bag, on_warning=self.logger.warning)
         except BagError as exc:
             self.logger.warning(f"{exc}; scored +inf")
             return math.inf
@@ -266,7 +266,7 @@ class TunerNode(Node):
                 else:
                     bag = scratch / "validation"
                     lane.run(best, cfg, bag, timeout)
-                validation, _ = score_bag(bag)
+                validation, _ = score_bag(bag, on_warning=log.warning)
                 out["validation"] = validation.as_json()
                 out["validation_bag"] = str(bag) if record else None
                 log.info(f"validated k = ({best[0]:.2f}, {best[1]:.2f}, {best[2]:.2f}) through the graph: "
