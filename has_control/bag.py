@@ -230,6 +230,8 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
     simulation time plus ``log_offset_ns``; stamps are simulation time."""
     from .actuator import joint_state
     from .episode import EpisodeArrays
+    from .topics import CONTROLLER_STATE_COLUMNS, GAINS_COLUMNS, REFERENCE_COLUMNS
+    from .wire import column_label
     from .reference import reference
     d = trace.data
     n = len(d)
@@ -245,10 +247,11 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
         STATE: (JOINT_STATE, cdr.encode_joint_states(stamps, STATE_NAMES, np.column_stack(pos),
                                                      np.column_stack(vel), np.column_stack(eff))),
         COMMAND: (JOINT_STATE, cdr.encode_joint_states(stamps, COMMAND_NAMES, d[:, 6:7])),
-        REFERENCE: (FLOAT64_ARRAY, cdr.encode_float64_arrays(ref)),
+        REFERENCE: (FLOAT64_ARRAY, cdr.encode_float64_arrays(ref, column_label(REFERENCE_COLUMNS))),
         CONTROLLER_STATE: (FLOAT64_ARRAY, cdr.encode_float64_arrays(
-            np.column_stack([t, d[:, 7], d[:, 8], d[:, 9], d[:, 10], d[:, 11], d[:, 1]]))),
-        GAINS: (FLOAT64_ARRAY, cdr.encode_float64_arrays([[0.0, *k]])),
+            np.column_stack([t, d[:, 7], d[:, 8], d[:, 9], d[:, 10], d[:, 11], d[:, 1]]),
+            column_label(CONTROLLER_STATE_COLUMNS))),
+        GAINS: (FLOAT64_ARRAY, cdr.encode_float64_arrays([[0.0, *k]], column_label(GAINS_COLUMNS))),
     }
     for rel, (ty, _) in topics.items():
         writer.add_topic(f"{prefix}/{rel}", ty)

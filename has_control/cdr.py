@@ -193,10 +193,18 @@ def joint_state_template(names: list[str], lengths: tuple[int, int, int]) -> tup
     return b, [b.float64_sequence(n) for n in lengths]
 
 
-def float64_array_template(n: int) -> tuple[_Builder, int]:
-    """One std_msgs/Float64MultiArray (no layout dims) of ``n`` zeros, and the offset of its data."""
+def float64_array_template(n: int, label: str | None = None) -> tuple[_Builder, int]:
+    """One std_msgs/Float64MultiArray of ``n`` zeros, and the offset of its data.
+    With ``label``, its layout has one dimension (label, size n, stride n), e.g.
+    the column names; without, none."""
     b = _Builder()
-    b.u32(0)                         # layout.dim[]
+    if label is None:
+        b.u32(0)                     # layout.dim[]
+    else:
+        b.u32(1)
+        b.string(label)
+        b.u32(n)                     # size
+        b.u32(n)                     # stride
     b.u32(0)                         # layout.data_offset
     return b, b.float64_sequence(n)
 
@@ -213,10 +221,10 @@ def encode_joint_states(stamps_ns, names: list[str], position, velocity=None, ef
     return [r.tobytes() for r in raw]
 
 
-def encode_float64_arrays(rows) -> list[bytes]:
-    """std_msgs/Float64MultiArray CDR messages (no layout dims), one per row."""
+def encode_float64_arrays(rows, label: str | None = None) -> list[bytes]:
+    """std_msgs/Float64MultiArray CDR messages, one per row (see :func:`float64_array_template`)."""
     rows = np.asarray(rows, dtype=np.float64)
-    b, off = float64_array_template(rows.shape[1])
+    b, off = float64_array_template(rows.shape[1], label)
     raw = _rows(bytes(b.buf), len(rows))
     _put(raw, off, rows)
     return [r.tobytes() for r in raw]

@@ -15,7 +15,8 @@ chamber_2  V2 [m³]           V̇2 = −A2·ẏ [m³/s]      P2 [Pa]
 The command is joint ``valve``, position ``[u]`` (spool displacement [m]),
 stamped with the state it answers. The controller's internals are
 ``std_msgs/Float64MultiArray`` whose columns lead with the sample's time t
-(the type has no header). No ROS import: the nodes turn these into
+(the type has no header); the layout's one dimension is labelled with the
+column names. No ROS import: the nodes turn these into
 publishers, the bag code into channels.
 """
 from __future__ import annotations
@@ -46,6 +47,10 @@ RUN_TOPICS = {STATE: JOINT_STATE, COMMAND: JOINT_STATE, CLOCK_TOPIC: CLOCK,
 STATE_LAYOUT = wire.joint_state_layout(STATE_NAMES, 3, 3, 3)
 COMMAND_LAYOUT = wire.joint_state_layout(COMMAND_NAMES, 1, 0, 0)
 CLOCK_LAYOUT = wire.clock_layout()
-CONTROLLER_STATE_LAYOUT = wire.float64_array_layout(len(CONTROLLER_STATE_COLUMNS))
-REFERENCE_LAYOUT = wire.float64_array_layout(len(REFERENCE_COLUMNS))
-GAINS_LAYOUT = wire.float64_array_layout(len(GAINS_COLUMNS))
+CONTROLLER_STATE_LAYOUT = wire.float64_array_layout(CONTROLLER_STATE_COLUMNS)
+REFERENCE_LAYOUT = wire.float64_array_layout(REFERENCE_COLUMNS)
+GAINS_LAYOUT = wire.float64_array_layout(GAINS_COLUMNS)
+
+#: The layout of each run topic (by relative name).
+LAYOUTS = {STATE: STATE_LAYOUT, COMMAND: COMMAND_LAYOUT, CLOCK_TOPIC: CLOCK_LAYOUT,
+           CONTROLLER_STATE: CONTROLLER_STATE_LAYOUT, REFERENCE: REFERENCE_LAYOUT, GAINS: GAINS_LAYOUT}

@@ -80,10 +80,16 @@ def joint_state_layout(names: list[str], position: int, velocity: int, effort: i
     return _layout(b, values, stamped=True)
 
 
-def float64_array_layout(n: int) -> Layout:
-    """std_msgs/Float64MultiArray with ``n`` values and no layout dimensions."""
-    b, start = cdr.float64_array_template(n)
-    return _layout(b, [start + 8 * j for j in range(n)], stamped=False)
+def float64_array_layout(columns: tuple[str, ...]) -> Layout:
+    """std_msgs/Float64MultiArray of one value per column, its layout's one
+    dimension labelled with the column names (what a viewer such as Foxglove shows)."""
+    b, start = cdr.float64_array_template(len(columns), column_label(columns))
+    return _layout(b, [start + 8 * j for j in range(len(columns))], stamped=False)
+
+
+def column_label(columns: tuple[str, ...]) -> str:
+    """The dimension label of a Float64MultiArray with these columns."""
+    return ",".join(columns)
 
 
 def clock_layout() -> Layout:

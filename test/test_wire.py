@@ -6,7 +6,7 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 from has_control import loop, topics
 from has_control.actuator import joint_state
@@ -62,9 +62,12 @@ def test_state_bytes_are_what_rclpy_and_rosbags_serialize():
     again = JointState(name=topics.COMMAND_NAMES, position=[u])
     again.header.stamp = msg.header.stamp
     _equal_but_padding(command, serialize_message(again), topics.COMMAND_LAYOUT)
-    for data, layout in ((internals, topics.CONTROLLER_STATE_LAYOUT), (reference, topics.REFERENCE_LAYOUT)):
+    for data, layout, columns in ((internals, topics.CONTROLLER_STATE_LAYOUT, topics.CONTROLLER_STATE_COLUMNS),
+                                  (reference, topics.REFERENCE_LAYOUT, topics.REFERENCE_COLUMNS)):
         values = list(deserialize_message(data, Float64MultiArray).data)
-        _equal_but_padding(data, serialize_message(Float64MultiArray(data=values)), layout)
+        labelled = Float64MultiArray(data=values)
+        labelled.layout.dim = [MultiArrayDimension(label=",".join(columns), size=len(columns), stride=len(columns))]
+        _equal_but_padding(data, serialize_message(labelled), layout)
 
 
 def test_rclpy_and_rosbags_decode_the_same_messages():

@@ -22,7 +22,7 @@ import struct
 from typing import Callable
 
 from ..errors import HasControlError
-from ..topics import CLOCK, JOINT_STATE, REFERENCE_LAYOUT, RUN_TOPICS
+from ..topics import CLOCK, JOINT_STATE, LAYOUTS, RUN_TOPICS
 from .messages import tee
 
 DEFAULT_PORT = 8765
@@ -34,7 +34,8 @@ _TYPES = {rel.rsplit("/", 1)[-1]: ty for rel, ty in RUN_TOPICS.items()}
 
 _STAMP = struct.Struct("<iI").unpack_from        # header.stamp / Clock.clock at byte 4
 _T = struct.Struct("<d").unpack_from             # data[0] = t of our Float64MultiArray layouts
-_T_OFFSET = int(REFERENCE_LAYOUT.values[0])      # the same for every length (no dimensions)
+#: Where data[0] = t sits in each Float64MultiArray topic (by the last part of its name).
+_T_OFFSETS = {rel.rsplit("/", 1)[-1]: int(lay.values[0]) for rel, lay in LAYOUTS.items() if not lay.stamped}
 
 
 def check_port(port, what: str) -> int:
@@ -100,9 +101,11 @@ class LiveView:
                     return
                 log(data, sec * 1_000_000_000 + nsec)
         else:
+            offset = _T_OFFSETS[topic.rsplit("/", 1)[-1]]
+
             def take(data: bytes) -> None:
                 try:
-                    t = _T(data, _T_OFFSET)[0]
+                    t = _T(data, offset)[0]
                 except struct.error:
                     log(data)
                     return
