@@ -162,8 +162,9 @@ def run_numpy(gains, T=10.0, dt=3e-4):
             vhat = (F - m * P["g"] - a1h * v) / m
             tau1 = ADAPT["s1"] * e2 * v / m
             tau2 = ADAPT["s2"] * hu * e3
-            r1 = np.where(((a1h >= ADAPT["amax"][0]) & (tau1 > 0)) | ((a1h <= ADAPT["amin"][0]) & (tau1 < 0)), 0.0, tau1)
-            r2 = np.where(((a2h >= ADAPT["amax"][1]) & (tau2 > 0)) | ((a2h <= ADAPT["amin"][1]) & (tau2 < 0)), 0.0, tau2)
+            amax, amin = ADAPT["amax"], ADAPT["amin"]
+            r1 = np.where(((a1h >= amax[0]) & (tau1 > 0)) | ((a1h <= amin[0]) & (tau1 < 0)), 0.0, tau1)
+            r2 = np.where(((a2h >= amax[1]) & (tau2 > 0)) | ((a2h <= amin[1]) & (tau2 < 0)), 0.0, tau2)
             x3d_dot = (m * k2 * (x2d_dot - vhat) + m * e1dot + m * (xd3 + k1 * (xd2 - vhat))
                        + r1 * v + a1h * vhat)
             N = k3 * e3 + gc + a2h * hu + x3d_dot + e2 / m

@@ -61,7 +61,8 @@ def main(argv=None) -> int:
               f"{s['e_mu']:11.4e} {s['e_sigma']:11.4e}")
     manual = simulate(cfg, MANUAL_GAINS.as_tuple())
     row("ABC manual", MANUAL_GAINS.as_tuple(), manual.score.as_json())
-    row("ABC, paper's tuned gains", PAPER_TUNED_GAINS.as_tuple(), simulate(cfg, PAPER_TUNED_GAINS.as_tuple()).score.as_json())
+    paper = PAPER_TUNED_GAINS.as_tuple()
+    row("ABC, paper's tuned gains", paper, simulate(cfg, paper).score.as_json())
     row("ABC, our PSO+CP+TVAC (from bag)", k, v)
     for label, (a, b, c) in PAPER_ROWS:
         print(f"  {label:<34} {'':8} {'':8} {'':8} {'':>11} {a:11.4e} {b:11.4e} {c:11.4e}")

@@ -22,9 +22,9 @@ from typing import Callable
 
 import numpy as np
 
+from .errors import HasControlError
 from .json_numbers import list_to_json
 
-from .errors import HasControlError
 
 @dataclass(frozen=True)
 class Variant:

@@ -21,7 +21,8 @@ async def main(port):
     async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=["foxglove.sdk.v1"], max_size=None) as ws:
         while (m := json.loads(await ws.recv()))["op"] != "advertise":
             pass
-        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": m["channels"][0]["id"]}]}))
+        await ws.send(json.dumps({"op": "subscribe",
+                                  "subscriptions": [{"id": 1, "channelId": m["channels"][0]["id"]}]}))
         print("subscribed", flush=True)
         n, end = 0, time.monotonic() + float(sys.argv[2])
         while time.monotonic() < end:

@@ -1,12 +1,12 @@
+import os
 import sys
 from pathlib import Path
 
+import pytest
+import rclpy
+
 # test modules import each other's helpers (e.g. test_episode.PINNED) as plain modules
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import os
-
-import pytest
 
 # Nodes started by tests discover only this machine, so parallel runs never cross-talk.
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -19,3 +19,12 @@ def domain_id():
     """A ROS domain of its own for each test that starts nodes (ids 100..229)."""
     _domain[0] = 100 + (_domain[0] - 99) % 130
     return _domain[0]
+
+
+@pytest.fixture
+def context(domain_id):
+    """An rclpy context of its own, on the test's domain."""
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain_id)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)

@@ -124,7 +124,7 @@ def test_encoded_trace_messages_equal_rosbags_serialisation():
     ts = typestore()
     js = ts.types["sensor_msgs/msg/JointState"]
     header = ts.types["std_msgs/msg/Header"](stamp=ts.types["builtin_interfaces/msg/Time"](sec=3, nanosec=300000),
-                                            frame_id="")
+                                             frame_id="")
     m = js(header=header, name=["actuator", "chamber_1", "chamber_2"], position=np.array([1.0, 2.0, 3.0]),
            velocity=np.array([4.0, 5.0, 6.0]), effort=np.array([7.0, 8.0, 9.0]))
     mine = cdr.encode_joint_states([3_000_300_000], ["actuator", "chamber_1", "chamber_2"],

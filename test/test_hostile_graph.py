@@ -19,7 +19,7 @@ from has_control.nodes.plant_node import PlantNode
 from has_control.nodes.stack import run_stack
 from has_control.params import Config
 
-from test_nodes import _spin_until as _spin, context  # noqa: F401  (the fixture)
+from test_nodes import _spin_until as _spin
 
 
 def test_malformed_and_non_finite_messages_are_counted_and_ignored(context):

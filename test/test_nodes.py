@@ -15,14 +15,6 @@ from has_control.nodes.stack import run_stack
 from has_control.params import Config
 
 
-@pytest.fixture
-def context(domain_id):
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=domain_id)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
 def test_graph_run_equals_the_in_process_trace(context):
     cfg = with_horizon(Config(), 1.5)
     run = run_stack(cfg, context=context)

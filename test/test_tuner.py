@@ -107,4 +107,3 @@ def test_bad_tuner_parameter_is_rejected_with_one_line(domain_id):
                        capture_output=True, text=True, timeout=120,
                        env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
     assert r.returncode == 2 and "evaluator = 'fast'" in r.stderr and "Traceback" not in r.stderr
-
