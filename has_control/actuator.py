@@ -93,7 +93,9 @@ def plant_step(x1, x2, x3, x4, u, ap, dt):
 
 @njit(**INLINE)
 def diverged(x1, x2, x3, x4, y_limit):
-    """SPEC §5 step 7: a state that is not finite or |y| > y_limit [m]."""
-    if not (math.isfinite(x1) and math.isfinite(x2) and math.isfinite(x3) and math.isfinite(x4)):
-        return True
-    return abs(x1) > y_limit
+    """SPEC §5 step 7: a state that is not finite or |y| > y_limit [m].
+
+    Written with ``&`` and ``|`` (no short-circuit), so a loop over lanes that
+    calls it has no branch."""
+    finite = math.isfinite(x1) & math.isfinite(x2) & math.isfinite(x3) & math.isfinite(x4)
+    return (not finite) | (abs(x1) > y_limit)
