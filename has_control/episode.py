@@ -177,7 +177,7 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
             alive += s[_DEAD, q] == 0.0
         if alive == 0:
             break
-    for q in range(last - first):
+    for q in range(min(last - first, LANES)):           # the caller never passes more
         p = first + q
         if s[_DEAD, q] > 0.0:
             out[p, 0] = out[p, 1] = out[p, 2] = out[p, 3] = math.inf
@@ -210,6 +210,8 @@ def _run_blocks(gains, arr: "EpisodeArrays", out) -> None:
     """Every block of ``gains`` on :func:`threads` threads. ``_block`` releases
     the GIL, so Python threads run blocks in parallel; each block writes its own
     rows of ``out``, so the result does not depend on the schedule."""
+    if gains.shape[0] == 0:
+        return
     workers = threads()
     edges = _block_edges(gains.shape[0], workers)
     args = (arr.actuator, arr.adaptation, arr.reference, arr.episode, arr.x0, out)
