@@ -7,8 +7,11 @@ every compiled caller, so a whole sample step is optimised as one function
 (without it LLVM leaves ``abc_law`` and ``rk4_step`` as calls, and the lane
 loop of the batch kernel cannot be vectorised). numba's own ``inline="always"``
 gives the same machine code but copies and re-types the callee's IR at every
-call site: a cold ``simulate`` compiled in 3.4-3.8 s with it, 2.4 s with
-``forceinline`` (README). Inlining reorders nothing: IEEE arithmetic without
+call site, for each kernel: measured alternately on empty caches, a cold
+``simulate --duration 2`` took 3.0 s with it and 2.6-2.8 s with ``forceinline``,
+and a ``tune`` right after it 3.8 s against 1.5 s, since the callees compiled
+for ``simulate`` are cached and serve the batch kernel too (README).
+Inlining reorders nothing: IEEE arithmetic without
 fast-math gives the same bits either way, and tests prove the batch kernel
 equal to the single-episode one. They stay callable from Python.
 
