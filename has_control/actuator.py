@@ -12,7 +12,7 @@ import math
 
 from numba import njit
 
-from .jit import INLINE
+from .jit import INLINE, LEAF
 from .params import (
     AREA_CAP, AREA_ROD, BULK, DAMPING, GRAVITY, LEAKAGE, MASS, P_RETURN, P_SUPPLY,
     V_CAP0, V_ROD0, VALVE_GAIN,
@@ -20,7 +20,7 @@ from .params import (
 
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def valve_flows(p1, p2, u, ap):
     """Servo-valve flows (q1 into the cap chamber, q2 out of the rod chamber) [m³/s].
 
@@ -32,7 +32,7 @@ def valve_flows(p1, p2, u, ap):
     return gu * math.sqrt(d1), gu * math.sqrt(d2)
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def valve_drops(p1, p2, opening, ap):
     """Pressure drops [Pa] across the two metering edges, floored at 0.
 
@@ -45,7 +45,7 @@ def valve_drops(p1, p2, opening, ap):
     return max(p1 - pr, 0.0), max(ps - p2, 0.0)
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def chamber_volumes(y, ap):
     """(V1, V2) [m³] at displacement y [m]: V01 + A1·y and V02 − A2·y."""
     return ap[V_CAP0] + ap[AREA_CAP] * y, ap[V_ROD0] - ap[AREA_ROD] * y
@@ -91,7 +91,7 @@ def plant_step(x1, x2, x3, x4, u, ap, dt):
     return y, v, min(max(p1, lo), hi), min(max(p2, lo), hi)
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def diverged(x1, x2, x3, x4, y_limit):
     """SPEC §5 step 7: a state that is not finite or |y| > y_limit [m].
 

@@ -21,7 +21,7 @@ from numba.np.unsafe.ndarray import to_fixed_tuple
 from .abc_controller import abc_law, adapt
 from .actuator import diverged, plant_step
 from .cost import Score, cost_increment, metric_finish, metric_update
-from .jit import INLINE, KERNEL
+from .jit import INLINE, KERNEL, LEAF
 from .params import (
     A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_SAMPLES, WIN_END, WIN_START,
     Y_LIMIT, Config, Gains,
@@ -65,7 +65,7 @@ def sample_step(x1, x2, x3, x4, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, 
     return y, v, p1, p2, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def _constants(ap, cp, ep):
     """The parameter arrays as tuples: in a loop, their entries are values
     rather than loads from memory LLVM cannot prove unaliased."""

@@ -15,7 +15,14 @@ Inlining reorders nothing: IEEE arithmetic without
 fast-math gives the same bits either way, and tests prove the batch kernel
 equal to the single-episode one. They stay callable from Python.
 
+``LEAF`` marks the smallest of them (chamber volumes, valve drops and flows,
+projection, cost and metric updates, divergence test): numba's own
+``inline="always"`` copies their few lines into each caller, which costs less
+than compiling each as a function of its own; cold ``simulate`` 2.7 -> 2.3 s,
+cold ``tune`` 3.2 -> 2.8 s (alternating, empty caches).
+
 ``KERNEL`` marks the entry points called from Python (episode, batch, scoring).
 """
 KERNEL = dict(cache=True, error_model="numpy", nogil=True)
 INLINE = dict(KERNEL, forceinline=True)
+LEAF = dict(KERNEL, inline="always")
