@@ -1,16 +1,17 @@
 """``scripts/bench``: speed of the batch evaluator against baselines in the same process.
 
-Prints figures only; never a pass/fail. Baselines: a NumPy implementation
-vectorised over the same gain sets (has_control.baselines.run_numpy) and a
-plain-Python loop (has_control.baselines.run), both on a shorter horizon and
-compared per simulated sample.
+Prints figures only; never a pass/fail. Baselines: a plain numba loop of the
+same sample step, one candidate per thread (timed alternately with the batch
+evaluator), a NumPy implementation vectorised over the same gain sets
+(has_control.baselines.run_numpy) and a plain-Python loop
+(has_control.baselines.run), the last two on a shorter horizon and compared per
+simulated sample.
 """
 from __future__ import annotations
 
 import argparse
 import time
 
-import numba
 import numpy as np
 
 from . import baselines
@@ -38,7 +39,6 @@ def _plain_kernel():
 
     from numba import njit, prange
 
-    from .abc_controller import abc_law  # noqa: F401  (sample_step's callees, inlined)
     from .cost import metric_finish
     from .episode import _constants, sample_step
     from .params import A1_INIT, A2_INIT, DT, N_SAMPLES, WIN_END, WIN_START, Y_LIMIT
@@ -59,7 +59,7 @@ def _plain_kernel():
             k1, k2, k3 = gains[p, 0], gains[p, 1], gains[p, 2]
             a1, a2 = cp[A1_INIT], cp[A2_INIT]
             x3d = j = count = mean = m2 = peak = 0.0
-            out[p, 0] = math.inf
+            out[p, 0] = out[p, 1] = out[p, 2] = out[p, 3] = math.inf
             for i in range(n):
                 in_window = lo <= i <= hi
                 if in_window:
@@ -87,7 +87,6 @@ def bench_evaluator(particles: int = 80, repeats: int = 3, numpy_horizon: float 
     gains = rng.uniform(*BOUNDS, size=(particles, 3))
     n = cfg.episode.samples
     cores = threads()
-    numba.set_num_threads(cores)
     arr = EpisodeArrays.from_config(cfg)
     plain = _plain_kernel()
     out = np.empty((particles, 4))
