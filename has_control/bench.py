@@ -41,16 +41,12 @@ def _plain_kernel():
 
     from .cost import metric_finish
     from .episode import _constants, sample_step
-    from .params import A1_INIT, A2_INIT, DT, N_SAMPLES, WIN_END, WIN_START, Y_LIMIT
+    from .params import A1_INIT, A2_INIT
     from .reference import reference
 
     @njit(parallel=True, error_model="numpy", nogil=True)
     def plain(gains, ap, cp, rp, ep, x0, out):
-        ap, cp, ep = _constants(ap, cp, ep)
-        dt = ep[DT]
-        n = int(ep[N_SAMPLES])
-        lo = int(ep[WIN_START])
-        hi = int(ep[WIN_END])
+        ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
         ref = np.empty((n, 4))
         for i in range(n):
             ref[i, 0], ref[i, 1], ref[i, 2], ref[i, 3] = reference(rp, i * dt)
@@ -67,7 +63,7 @@ def _plain_kernel():
                 x1, x2, x3, x4, a1, a2, x3d, j, mean, m2, peak, bad, _, _, _, _ = sample_step(
                     x1, x2, x3, x4, a1, a2, x3d, i > 0, ref[i, 0], ref[i, 1], ref[i, 2], ref[i, 3],
                     k1, k2, k3, j, mean, m2, peak, count, in_window,
-                    ap, cp, ep, dt, ep[Y_LIMIT])
+                    ap, cp, ep, dt, y_limit)
                 if bad:
                     break
             if not bad:

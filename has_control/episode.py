@@ -67,22 +67,19 @@ def sample_step(x1, x2, x3, x4, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, 
 
 @njit(**LEAF)
 def _constants(ap, cp, ep):
-    """The parameter arrays as tuples: in a loop, their entries are values
-    rather than loads from memory LLVM cannot prove unaliased."""
-    return (to_fixed_tuple(ap, N_ACTUATOR), to_fixed_tuple(cp, N_CONTROLLER),
-            to_fixed_tuple(ep, N_EPISODE))
+    """The parameter arrays as tuples (in a loop, their entries are values
+    rather than loads from memory LLVM cannot prove unaliased), and the grid:
+    (ap, cp, ep, dt, samples, first and last window sample, y_limit)."""
+    ept = to_fixed_tuple(ep, N_EPISODE)
+    return (to_fixed_tuple(ap, N_ACTUATOR), to_fixed_tuple(cp, N_CONTROLLER), ept, ept[DT],
+            int(ept[N_SAMPLES]), int(ept[WIN_START]), int(ept[WIN_END]), ept[Y_LIMIT])
 
 
 @njit(**KERNEL)
 def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
     """Run one episode; fill ``trace`` rows if it has any. Returns
     (J, e_max, e_μ, e_σ, samples, diverged)."""
-    ap, cp, ep = _constants(ap, cp, ep)
-    dt = ep[DT]
-    n = int(ep[N_SAMPLES])
-    lo = int(ep[WIN_START])
-    hi = int(ep[WIN_END])
-    y_limit = ep[Y_LIMIT]
+    ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
     record = trace.shape[0] > 0
     x1 = x0[0]
     x2 = x0[1]
@@ -138,12 +135,7 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
     diverged lane goes on computing (its results are discarded); the block
     stops when every lane has diverged.
     """
-    ap, cp, ep = _constants(ap, cp, ep)
-    dt = ep[DT]
-    n = int(ep[N_SAMPLES])
-    lo = int(ep[WIN_START])
-    hi = int(ep[WIN_END])
-    y_limit = ep[Y_LIMIT]
+    ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
     s = np.zeros((_ROWS, LANES))
     for q in range(LANES):
         p = min(first + q, last - 1)
