@@ -11,6 +11,7 @@ same bits.
 from __future__ import annotations
 
 import math
+import os
 import threading
 from dataclasses import dataclass
 
@@ -199,19 +200,22 @@ def _block_edges(count: int, workers: int) -> np.ndarray:
     return np.linspace(0, count, blocks + 1).round().astype(np.int64)
 
 
-_POOL = None
+_POOL = (None, 0, 0)          # (executor, workers, pid that made it)
 _POOL_LOCK = threading.Lock()
 
 
 def _pool(workers: int):
     """One thread pool for every call of :func:`evaluate` (starting threads
-    anew cost about 2 ms a call, 4-5 % of scoring 80 candidates)."""
+    anew cost about 2 ms a call, 4-5 % of scoring 80 candidates). A forked
+    child, which has none of the parent's threads, makes its own."""
     global _POOL
     with _POOL_LOCK:
-        if _POOL is None or _POOL._max_workers != workers:
+        pool, size, pid = _POOL
+        if pool is None or size != workers or pid != os.getpid():
             from concurrent.futures import ThreadPoolExecutor
-            _POOL = ThreadPoolExecutor(workers, thread_name_prefix="has_control-evaluate")
-        return _POOL
+            pool = ThreadPoolExecutor(workers, thread_name_prefix="has_control-evaluate")
+            _POOL = (pool, workers, os.getpid())
+        return pool
 
 
 def _run_blocks(gains, arr: "EpisodeArrays", out) -> None:
