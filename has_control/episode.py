@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 import numba
 from numba import njit
+from numba.cpython.unsafe.tuple import tuple_setitem
 from numba.np.unsafe.ndarray import to_fixed_tuple
 
 from .abc_controller import abc_law, adapt
@@ -26,7 +27,7 @@ from .cost import Score, cost_increment, metric_finish, metric_update
 from .jit import INLINE, KERNEL, LEAF
 from .params import (
     A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_SAMPLES, WIN_END, WIN_START,
-    Y_LIMIT, Config, Gains,
+    X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
 )
 from .reference import reference
 
@@ -127,6 +128,20 @@ _X1, _X2, _X3, _X4, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 
 _ROWS = 15
 
 
+@njit(**INLINE)
+def _lanes(s, has_prev, r0, r1, r2, r3, count, in_window, ap, cp, ep, dt, y_limit, mark):
+    """One sample of every lane of a block: the loop LLVM vectorises. A lane
+    that diverges at this sample gets ``mark`` in its _DEAD row."""
+    for q in range(LANES):
+        (s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_A1, q], s[_A2, q], s[_X3D, q], s[_J, q],
+         s[_MEAN, q], s[_M2, q], s[_PEAK, q], bad, _, _, _, _) = sample_step(
+            s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_A1, q], s[_A2, q], s[_X3D, q], has_prev,
+            r0, r1, r2, r3, s[_K1, q], s[_K2, q], s[_K3, q],
+            s[_J, q], s[_MEAN, q], s[_M2, q], s[_PEAK, q], count, in_window, ap, cp, ep, dt, y_limit)
+        dead = s[_DEAD, q]
+        s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
+
+
 @njit(**KERNEL)
 def _block(gains, first, last, ap, cp, rp, ep, x0, out):
     """Episodes of candidates first..last-1 (at most LANES) advanced sample by
@@ -135,9 +150,14 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
     The lane loop calls :func:`sample_step`, as :func:`_episode` does, so a
     candidate's score does not depend on which block or lane it ran in. A
     diverged lane goes on computing (its results are discarded); the block
-    stops when every lane has diverged.
+    stops when every lane has diverged. The ẋ3d mode is made a constant in
+    each of two copies of the lane loop, so neither computes the other mode's
+    division (4 % faster than one loop computing both).
     """
     ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
+    backward = int(cp[X3D_MODE]) == X3D_BACKWARD
+    cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
+    cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
     s = np.zeros((_ROWS, LANES))
     for q in range(LANES):
         p = min(first + q, last - 1)
@@ -156,16 +176,10 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
         in_window = lo <= i <= hi
         if in_window:
             count += 1.0
-        has_prev = i > 0
-        mark = i + 1.0
-        for q in range(LANES):
-            (s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_A1, q], s[_A2, q], s[_X3D, q], s[_J, q],
-             s[_MEAN, q], s[_M2, q], s[_PEAK, q], bad, _, _, _, _) = sample_step(
-                s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_A1, q], s[_A2, q], s[_X3D, q], has_prev,
-                r0, r1, r2, r3, s[_K1, q], s[_K2, q], s[_K3, q],
-                s[_J, q], s[_MEAN, q], s[_M2, q], s[_PEAK, q], count, in_window, ap, cp, ep, dt, y_limit)
-            dead = s[_DEAD, q]
-            s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
+        if backward:
+            _lanes(s, i > 0, r0, r1, r2, r3, count, in_window, ap, cp_backward, ep, dt, y_limit, i + 1.0)
+        else:
+            _lanes(s, i > 0, r0, r1, r2, r3, count, in_window, ap, cp_analytic, ep, dt, y_limit, i + 1.0)
         alive = 0
         for q in range(LANES):
             alive += s[_DEAD, q] == 0.0
