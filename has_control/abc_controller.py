@@ -11,7 +11,7 @@ import math
 
 from numba import njit
 
-from .jit import INLINE
+from .jit import INLINE, LEAF
 from .actuator import chamber_volumes, valve_drops
 from .params import (
     A1_MAX, A1_MIN, A2_MAX, A2_MIN, AREA_CAP, AREA_ROD, BULK, GRAVITY, MASS, SIGMA1, SIGMA2, VALVE_GAIN, X3D_BACKWARD, X3D_MODE,
@@ -19,7 +19,7 @@ from .params import (
 
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def projection(a_hat, tau, lower, upper):
     """Proj(â, τ) (paper Eq. 12): 0 if â ≥ upper and τ > 0, 0 if â ≤ lower and τ < 0, else τ."""
     if a_hat >= upper and tau > 0.0:

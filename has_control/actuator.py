@@ -12,14 +12,14 @@ import math
 
 from numba import njit
 
-from .jit import INLINE
+from .jit import INLINE, LEAF
 from .params import (
     AREA_CAP, AREA_ROD, BULK, DAMPING, GRAVITY, LEAKAGE, MASS, P_RETURN, P_SUPPLY,
     V_CAP0, V_ROD0, VALVE_GAIN,
 )
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def valve_flows(p1, p2, u, ap):
     """Servo-valve flows (q1 into the cap chamber, q2 out of the rod chamber) [m³/s].
 
@@ -31,7 +31,7 @@ def valve_flows(p1, p2, u, ap):
     return gu * math.sqrt(d1), gu * math.sqrt(d2)
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def valve_drops(p1, p2, opening, ap):
     """Pressure drops [Pa] across the two metering edges, floored at 0.
 
@@ -44,7 +44,7 @@ def valve_drops(p1, p2, opening, ap):
     return max(p1 - pr, 0.0), max(ps - p2, 0.0)
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def chamber_volumes(y, ap):
     """(V1, V2) [m³] at displacement y [m]: V01 + A1·y and V02 − A2·y."""
     return ap[V_CAP0] + ap[AREA_CAP] * y, ap[V_ROD0] - ap[AREA_ROD] * y
@@ -102,9 +102,11 @@ def plant_step(x1, x2, x3, x4, u, ap, dt):
     return y, v, min(max(p1, lo), hi), min(max(p2, lo), hi)
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def diverged(x1, x2, x3, x4, y_limit):
-    """SPEC §5 step 7: a state that is not finite or |y| > y_limit [m]."""
-    if not (math.isfinite(x1) and math.isfinite(x2) and math.isfinite(x3) and math.isfinite(x4)):
-        return True
-    return abs(x1) > y_limit
+    """SPEC §5 step 7: a state that is not finite or |y| > y_limit [m].
+
+    Written with ``&`` and ``|`` (no short-circuit), so a loop over lanes that
+    calls it has no branch."""
+    finite = math.isfinite(x1) & math.isfinite(x2) & math.isfinite(x3) & math.isfinite(x4)
+    return (not finite) | (abs(x1) > y_limit)

@@ -1,16 +1,17 @@
 """``scripts/bench``: speed of the batch evaluator against baselines in the same process.
 
-Prints figures only; never a pass/fail. Baselines: a NumPy implementation
-vectorised over the same gain sets (has_control.baselines.run_numpy) and a
-plain-Python loop (has_control.baselines.run), both on a shorter horizon and
-compared per simulated sample.
+Prints figures only; never a pass/fail. Baselines: a plain numba loop of the
+same sample step, one candidate per thread (timed alternately with the batch
+evaluator), a NumPy implementation vectorised over the same gain sets
+(has_control.baselines.run_numpy) and a plain-Python loop
+(has_control.baselines.run), the last two on a shorter horizon and compared per
+simulated sample.
 """
 from __future__ import annotations
 
 import argparse
 import time
 
-import numba
 import numpy as np
 
 from . import baselines
@@ -29,15 +30,82 @@ def _best_of(repeats: int, fn) -> float:
     return best
 
 
+def _timed(fn) -> tuple[float, float]:
+    """(wall, CPU) seconds of one call; CPU time sums every thread of the
+    process, so it shows the work done even when another process shares a core."""
+    w0, c0 = time.perf_counter(), time.process_time()
+    fn()
+    return time.perf_counter() - w0, time.process_time() - c0
+
+
+def _plain_kernel():
+    """A straightforward numba loop over the same equations, for comparison:
+    one candidate per thread (``prange``), the reference's sin/cos computed once
+    per sample into a table, each sample one call of the core's
+    :func:`~has_control.episode.sample_step`. Compiled here, not cached."""
+    import math
+
+    from numba import njit, prange
+
+    from .cost import metric_finish
+    from .episode import _constants, sample_step
+    from .params import A1_INIT, A2_INIT
+    from .reference import reference
+
+    @njit(parallel=True, error_model="numpy", nogil=True)
+    def plain(gains, ap, cp, rp, ep, x0, out):
+        ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
+        ref = np.empty((n, 4))
+        for i in range(n):
+            ref[i, 0], ref[i, 1], ref[i, 2], ref[i, 3] = reference(rp, i * dt)
+        for p in prange(gains.shape[0]):
+            x1, x2, x3, x4 = x0[0], x0[1], x0[2], x0[3]
+            k1, k2, k3 = gains[p, 0], gains[p, 1], gains[p, 2]
+            a1, a2 = cp[A1_INIT], cp[A2_INIT]
+            x3d = j = count = mean = m2 = peak = 0.0
+            out[p, 0] = out[p, 1] = out[p, 2] = out[p, 3] = math.inf
+            for i in range(n):
+                in_window = lo <= i <= hi
+                if in_window:
+                    count += 1.0
+                x1, x2, x3, x4, a1, a2, x3d, j, mean, m2, peak, bad, _, _, _, _ = sample_step(
+                    x1, x2, x3, x4, a1, a2, x3d, i > 0, ref[i, 0], ref[i, 1], ref[i, 2], ref[i, 3],
+                    k1, k2, k3, j, mean, m2, peak, count, in_window,
+                    ap, cp, ep, dt, y_limit)
+                if bad:
+                    break
+            if not bad:
+                out[p, 0] = j
+                out[p, 1], out[p, 2], out[p, 3] = metric_finish(count, mean, m2, peak)
+    return plain
+
+
 def bench_evaluator(particles: int = 80, repeats: int = 3, numpy_horizon: float = 0.5,
                     python_horizon: float = 1.5) -> dict:
+    """The batch evaluator (lane-vectorised blocks) against the plain loop of
+    the same equations, alternating A/B in this process, best of ``repeats``;
+    then the NumPy and plain-Python baselines on shorter horizons."""
+    from .episode import EpisodeArrays, threads
     cfg = Config()
     rng = np.random.default_rng(0)
     gains = rng.uniform(*BOUNDS, size=(particles, 3))
     n = cfg.episode.samples
-    cores = numba.get_num_threads()
+    cores = threads()
+    arr = EpisodeArrays.from_config(cfg)
+    plain = _plain_kernel()
+    out = np.empty((particles, 4))
+
+    def run_plain():
+        plain(gains, arr.actuator, arr.adaptation, arr.reference, arr.episode, arr.x0, out)
     evaluate(gains[:2])                                   # compile / load the cache
-    t_batch = _best_of(repeats, lambda: evaluate(gains))
+    run_plain()                                           # compile
+    same = np.array_equal(out[:, 0], evaluate(gains))
+    t_batch = t_plain = cpu_batch = cpu_plain = float("inf")
+    for _ in range(repeats):                              # alternate A/B
+        wall, cpu = _timed(lambda: evaluate(gains))
+        t_batch, cpu_batch = min(t_batch, wall), min(cpu_batch, cpu)
+        wall, cpu = _timed(run_plain)
+        t_plain, cpu_plain = min(t_plain, wall), min(cpu_plain, cpu)
     per_sample_wall = t_batch / (particles * n)           # s per (sample × gain set), all cores
     n_np = round(numpy_horizon / cfg.episode.step)
     t_np = _best_of(1, lambda: baselines.run_numpy(gains, T=numpy_horizon))
@@ -47,8 +115,12 @@ def bench_evaluator(particles: int = 80, repeats: int = 3, numpy_horizon: float 
     py_per = t_py / n_py
     return {
         "particles": particles, "samples": n, "cores": cores,
-        "batch_seconds": t_batch,
+        "batch_seconds": t_batch, "plain_seconds": t_plain, "plain_same_bits": same,
         "ns_per_sample_per_core": per_sample_wall * cores * 1e9,
+        "plain_ns_per_sample_per_core": t_plain / (particles * n) * cores * 1e9,
+        "cpu_ns_per_sample": cpu_batch / (particles * n) * 1e9,
+        "plain_cpu_ns_per_sample": cpu_plain / (particles * n) * 1e9,
+        "ratio": t_batch / t_plain,
         "numpy_us_per_sample_per_gainset": np_per * 1e6,
         "python_us_per_sample": py_per * 1e6,
         "speedup_vs_numpy": np_per / per_sample_wall,
@@ -81,12 +153,13 @@ def bench_paper(seed: int = 1) -> dict:
     cfg = Config()
     evaluate(np.array([[400.0, 400.0, 400.0]]), cfg)     # compile / load the cache
     runs = {}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for variant in VARIANTS:
         res = tune(cfg, Tuning(seed=seed).replace(variant=variant))
         runs[variant] = {"seconds": res.seconds, "evaluations": res.result.nfev, "J": res.result.fun}
-    return {"seconds": time.perf_counter() - t0, "episodes": sum(r["evaluations"] for r in runs.values()),
-            "runs": runs}
+    from .episode import threads
+    return {"seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
+            "episodes": sum(r["evaluations"] for r in runs.values()), "runs": runs, "cores": threads()}
 
 
 def bench_scoring() -> float:
@@ -109,7 +182,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="scripts/bench", description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--paper", action="store_true",
-                    help="run only the paper experiment for one seed, for real (about a minute)")
+                    help="run only the paper experiment for one seed, for real (12-20 s on 2 cores)")
+    ap.add_argument("--evaluator", action="store_true",
+                    help="run only the evaluator comparison (blocks against the plain loop)")
     ap.add_argument("--graph", action="store_true", help="run only the node-graph table (about a minute)")
     args = ap.parse_args(argv)
     if args.graph:
@@ -119,15 +194,21 @@ def main(argv=None) -> int:
     if args.paper:
         r = bench_paper()
         print(f"paper experiment, seed 1, run for real: {r['episodes']:,} episodes of 10 s in "
-              f"{r['seconds']:.1f} s wall on {numba.get_num_threads()} cores")
+              f"{r['seconds']:.1f} s wall on {r['cores']} cores (CPU time {r['cpu_seconds']:.1f} s)")
         for v, run in r["runs"].items():
             print(f"  {v}: {run['seconds']:.1f} s, {run['evaluations']:,} episodes, J = {run['J']:.6e}")
         return 0
     r = bench_evaluator(repeats=args.repeats)
     print(f"batch evaluator: {r['particles']} random gain sets x {r['samples']} samples "
           f"(10 s episodes) on {r['cores']} cores: {r['batch_seconds']:.3f} s "
-          f"(best of {args.repeats})")
-    print(f"  {r['ns_per_sample_per_core']:.1f} ns per sample per core")
+          f"(best of {args.repeats}, alternating with the plain loop)")
+    print(f"  lane-vectorised blocks: {r['ns_per_sample_per_core']:.1f} ns per sample per core "
+          f"(CPU time {r['cpu_ns_per_sample']:.1f} ns per sample)")
+    print(f"  plain loop (one candidate per thread, prange, same sample_step): "
+          f"{r['plain_ns_per_sample_per_core']:.1f} ns per sample per core "
+          f"(CPU time {r['plain_cpu_ns_per_sample']:.1f} ns), {r['plain_seconds']:.3f} s, "
+          f"{'same' if r['plain_same_bits'] else 'DIFFERENT'} J bits")
+    print(f"  ratio blocks / plain loop: {r['ratio']:.2f}")
     print(f"  NumPy baseline (vectorised over the 80 gain sets): "
           f"{r['numpy_us_per_sample_per_gainset']:.2f} us per sample per gain set "
           f"-> batch evaluator is {r['speedup_vs_numpy']:.0f}x faster (wall)")
@@ -135,6 +216,8 @@ def main(argv=None) -> int:
           f"-> batch evaluator is {r['speedup_vs_python']:.0f}x faster (wall)")
     print(f"  paper experiment (3 variants x 80 x 100 episodes), evaluator time: "
           f"{r['paper_experiment_seconds_estimate']:.1f} s")
+    if args.evaluator:
+        return 0
     o = bench_optimiser()
     print(f"optimiser overhead: {100 * o['optimiser_share']:.2f} % of a {o['iterations']}-iteration "
           f"tuning run ({o['seconds']:.1f} s) is spent outside the evaluator")

@@ -12,12 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .jit import INLINE, KERNEL
+from .jit import KERNEL, LEAF
 from .params import DT, LAMBDA1, LAMBDA2, LAMBDA3, WIN_END, WIN_START
 
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def cost_increment(e1, u, ep):
     """(λ1|e1| + λ2·u² + λ3|e1|·[e1 < 0])·Δt for one sample."""
     ae = abs(e1)
@@ -27,7 +27,7 @@ def cost_increment(e1, u, ep):
     return c * ep[DT]
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def metric_update(count, mean, m2, peak, e1):
     """Welford update of count, mean and Σ(x − mean)² of |e1|, and its max."""
     x = abs(e1)
@@ -38,7 +38,7 @@ def metric_update(count, mean, m2, peak, e1):
     return count, mean, m2, max(peak, x)
 
 
-@njit(**INLINE)
+@njit(**LEAF)
 def metric_finish(count, mean, m2, peak):
     """(e_max, e_μ, e_σ) with the population standard deviation."""
     if count == 0.0:

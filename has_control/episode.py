@@ -1,25 +1,33 @@
 """One closed-loop episode (SPEC §5), as a trace or as a parallel batch of costs.
 
-Both entry points run the same compiled loop, :func:`_episode`, which calls
-the one implementation of the reference, the control law, the cost and the
-plant step. ``simulate`` records the time series; ``evaluate`` scores many
-gain sets in parallel over all cores, deterministically.
+One sample of one candidate is :func:`sample_step` (law, cost, metrics,
+adaptation, plant step, divergence test), inlined into both kernels:
+``_episode`` runs one candidate and records its trace (``simulate``);
+``_block`` runs up to LANES candidates together, structure of arrays, with a
+branch-free loop over lanes that LLVM vectorises (``evaluate``, blocks spread
+over threads). Both do the same arithmetic per candidate, so they give the
+same bits.
 """
 from __future__ import annotations
 
 import math
+import os
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 import numba
-from numba import njit, prange
+from numba import njit
+from numba.cpython.unsafe.tuple import tuple_setitem
+from numba.np.unsafe.ndarray import to_fixed_tuple
 
 from .abc_controller import abc_law, adapt
 from .actuator import diverged, plant_step
 from .cost import Score, cost_increment, metric_finish, metric_update
-from .jit import KERNEL
+from .jit import INLINE, KERNEL, LEAF
 from .params import (
-    A1_INIT, A2_INIT, DT, N_SAMPLES, WIN_END, WIN_START, Y_LIMIT, Config, Gains,
+    A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_SAMPLES, WIN_END, WIN_START,
+    X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
 )
 from .reference import reference
 
@@ -27,23 +35,54 @@ from .reference import reference
 TRACE_COLUMNS = ("t", "x1d", "y", "ydot", "P1", "P2", "u", "e1", "e2", "e3", "a1_hat", "a2_hat")
 _NCOL = len(TRACE_COLUMNS)
 
+#: Lanes of one block of the batch kernel: a compile-time constant, so the
+#: block's state is one (rows, LANES) array at fixed offsets and LLVM can prove
+#: the lanes independent and vectorise the lane loop (AVX2: 4 doubles a vector).
+#: A block with fewer candidates pads its last lanes with copies of its last one.
+LANES = 8
 
 
-#: Most candidates advanced together in one block of the batch kernel.
-#: Independent candidates interleave in the CPU's pipelines (the RK4 chain of
-#: sqrt and division is latency-bound for one candidate alone).
-MAX_LANES = 16
+@njit(**INLINE)
+def sample_step(x1, x2, x3, x4, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, r3, k1, k2, k3,
+                j, mean, m2, peak, count, in_window, ap, cp, ep, dt, y_limit):
+    """SPEC §5 steps 3-7 for one candidate at one sample: law, cost, metrics,
+    adaptation, plant step and divergence test.
+
+    r0..r3 are the reference values of the sample; ``count`` is the number of
+    window samples including this one, ``in_window`` whether this one is in
+    the window. No branch depends on the lane's own values except through
+    selects, so a loop over lanes of this function vectorises. Returns the
+    next (x1..x4, â1, â2, x3d, J, mean, m2, peak), whether the run diverged,
+    and (u, e1, e2, e3) of this sample.
+    """
+    u, e1, e2, e3, rate1, rate2, x3d = abc_law(
+        x1, x2, x3, x4, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, r3, k1, k2, k3, ap, cp, dt)
+    j += cost_increment(e1, u, ep)
+    _, mean_w, m2_w, peak_w = metric_update(count - 1.0, mean, m2, peak, e1)
+    mean = mean_w if in_window else mean
+    m2 = m2_w if in_window else m2
+    peak = peak_w if in_window else peak
+    b1, b2 = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
+    y, v, p1, p2 = plant_step(x1, x2, x3, x4, u, ap, dt)
+    bad = diverged(y, v, p1, p2, y_limit) | (not math.isfinite(u))
+    return y, v, p1, p2, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3
+
+
+@njit(**LEAF)
+def _constants(ap, cp, ep):
+    """The parameter arrays as tuples (in a loop, their entries are values
+    rather than loads from memory LLVM cannot prove unaliased), and the grid:
+    (ap, cp, ep, dt, samples, first and last window sample, y_limit)."""
+    ept = to_fixed_tuple(ep, N_EPISODE)
+    return (to_fixed_tuple(ap, N_ACTUATOR), to_fixed_tuple(cp, N_CONTROLLER), ept, ept[DT],
+            int(ept[N_SAMPLES]), int(ept[WIN_START]), int(ept[WIN_END]), ept[Y_LIMIT])
 
 
 @njit(**KERNEL)
 def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
     """Run one episode; fill ``trace`` rows if it has any. Returns
     (J, e_max, e_μ, e_σ, samples, diverged)."""
-    dt = ep[DT]
-    n = int(ep[N_SAMPLES])
-    lo = int(ep[WIN_START])
-    hi = int(ep[WIN_END])
-    y_limit = ep[Y_LIMIT]
+    ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
     record = trace.shape[0] > 0
     x1 = x0[0]
     x2 = x0[1]
@@ -51,17 +90,18 @@ def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
     x4 = x0[3]
     a1_hat = cp[A1_INIT]
     a2_hat = cp[A2_INIT]
-    x3d_prev = 0.0
+    x3d = 0.0
     j = 0.0
     count = mean = m2 = peak = 0.0
     for i in range(n):
         t = i * dt
         r0, r1, r2, r3 = reference(rp, t)
-        u, e1, e2, e3, rate1, rate2, x3d = abc_law(
-            x1, x2, x3, x4, a1_hat, a2_hat, x3d_prev, i > 0, r0, r1, r2, r3, k1, k2, k3, ap, cp, dt)
-        j += cost_increment(e1, u, ep)
-        if lo <= i <= hi:
-            count, mean, m2, peak = metric_update(count, mean, m2, peak, e1)
+        in_window = lo <= i <= hi
+        if in_window:
+            count += 1.0
+        y, v, p1, p2, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3 = sample_step(
+            x1, x2, x3, x4, a1_hat, a2_hat, x3d, i > 0, r0, r1, r2, r3, k1, k2, k3,
+            j, mean, m2, peak, count, in_window, ap, cp, ep, dt, y_limit)
         if record:
             row = trace[i]
             row[0] = t
@@ -76,78 +116,76 @@ def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
             row[9] = e3
             row[10] = a1_hat
             row[11] = a2_hat
-        a1_hat, a2_hat = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
-        x3d_prev = x3d
-        x1, x2, x3, x4 = plant_step(x1, x2, x3, x4, u, ap, dt)
-        if diverged(x1, x2, x3, x4, y_limit) or not math.isfinite(u):
+        if bad:
             return math.inf, math.inf, math.inf, math.inf, i + 1, True
+        x1, x2, x3, x4, a1_hat, a2_hat = y, v, p1, p2, b1, b2
     e_max, e_mu, e_sigma = metric_finish(count, mean, m2, peak)
     return j, e_max, e_mu, e_sigma, n, False
 
 
 # rows of a block's lane state
-_X1, _X2, _X3, _X4, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD = range(12)
+_X1, _X2, _X3, _X4, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 = range(15)
+_ROWS = 15
+
+
+@njit(**INLINE)
+def _lanes(s, has_prev, r0, r1, r2, r3, count, in_window, ap, cp, ep, dt, y_limit, mark):
+    """One sample of every lane of a block: the loop LLVM vectorises. A lane
+    that diverges at this sample gets ``mark`` in its _DEAD row."""
+    for q in range(LANES):
+        (s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_A1, q], s[_A2, q], s[_X3D, q], s[_J, q],
+         s[_MEAN, q], s[_M2, q], s[_PEAK, q], bad, _, _, _, _) = sample_step(
+            s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_A1, q], s[_A2, q], s[_X3D, q], has_prev,
+            r0, r1, r2, r3, s[_K1, q], s[_K2, q], s[_K3, q],
+            s[_J, q], s[_MEAN, q], s[_M2, q], s[_PEAK, q], count, in_window, ap, cp, ep, dt, y_limit)
+        dead = s[_DEAD, q]
+        s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
 
 
 @njit(**KERNEL)
 def _block(gains, first, last, ap, cp, rp, ep, x0, out):
-    """Episodes of candidates first..last-1 advanced sample by sample together.
+    """Episodes of candidates first..last-1 (at most LANES) advanced sample by
+    sample together, structure of arrays: lane q of row r is ``s[r, q]``.
 
-    Per lane, the arithmetic is exactly :func:`_episode`'s, so a candidate's
-    score does not depend on which block or lane it ran in.
+    The lane loop calls :func:`sample_step`, as :func:`_episode` does, so a
+    candidate's score does not depend on which block or lane it ran in. A
+    diverged lane goes on computing (its results are discarded); the block
+    stops when every lane has diverged. The ẋ3d mode is made a constant in
+    each of two copies of the lane loop, so neither computes the other mode's
+    division (4 % faster than one loop computing both).
     """
-    lanes = last - first
-    dt = ep[DT]
-    n = int(ep[N_SAMPLES])
-    lo = int(ep[WIN_START])
-    hi = int(ep[WIN_END])
-    y_limit = ep[Y_LIMIT]
-    s = np.zeros((12, lanes))
-    for q in range(lanes):
+    ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
+    backward = int(cp[X3D_MODE]) == X3D_BACKWARD
+    cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
+    cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
+    s = np.zeros((_ROWS, LANES))
+    for q in range(LANES):
+        p = min(first + q, last - 1)
         s[_X1, q] = x0[0]
         s[_X2, q] = x0[1]
         s[_X3, q] = x0[2]
         s[_X4, q] = x0[3]
         s[_A1, q] = cp[A1_INIT]
         s[_A2, q] = cp[A2_INIT]
+        s[_K1, q] = gains[p, 0]
+        s[_K2, q] = gains[p, 1]
+        s[_K3, q] = gains[p, 2]
     count = 0.0
-    alive = lanes
     for i in range(n):
         r0, r1, r2, r3 = reference(rp, i * dt)
         in_window = lo <= i <= hi
         if in_window:
             count += 1.0
-        for q in range(lanes):
-            if s[_DEAD, q] > 0.0:
-                continue
-            p = first + q
-            x1 = s[_X1, q]
-            x2 = s[_X2, q]
-            x3 = s[_X3, q]
-            x4 = s[_X4, q]
-            a1_hat = s[_A1, q]
-            a2_hat = s[_A2, q]
-            u, e1, e2, e3, rate1, rate2, x3d = abc_law(
-                x1, x2, x3, x4, a1_hat, a2_hat, s[_X3D, q], i > 0, r0, r1, r2, r3,
-                gains[p, 0], gains[p, 1], gains[p, 2], ap, cp, dt)
-            s[_J, q] += cost_increment(e1, u, ep)
-            if in_window:
-                # the block counts window samples once, for all lanes
-                _, s[_MEAN, q], s[_M2, q], s[_PEAK, q] = metric_update(
-                    count - 1.0, s[_MEAN, q], s[_M2, q], s[_PEAK, q], e1)
-            s[_A1, q], s[_A2, q] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
-            s[_X3D, q] = x3d
-            y, v, p1, p2 = plant_step(x1, x2, x3, x4, u, ap, dt)
-            s[_X1, q] = y
-            s[_X2, q] = v
-            s[_X3, q] = p1
-            s[_X4, q] = p2
-            if diverged(y, v, p1, p2, y_limit) or not math.isfinite(u):
-                s[_DEAD, q] = i + 1.0
-                alive -= 1
+        if backward:
+            _lanes(s, i > 0, r0, r1, r2, r3, count, in_window, ap, cp_backward, ep, dt, y_limit, i + 1.0)
+        else:
+            _lanes(s, i > 0, r0, r1, r2, r3, count, in_window, ap, cp_analytic, ep, dt, y_limit, i + 1.0)
+        alive = 0
+        for q in range(LANES):
+            alive += s[_DEAD, q] == 0.0
         if alive == 0:
             break
-    for q in range(lanes):
+    for q in range(min(last - first, LANES)):           # the caller never passes more
         p = first + q
         if s[_DEAD, q] > 0.0:
             out[p, 0] = out[p, 1] = out[p, 2] = out[p, 3] = math.inf
@@ -163,19 +201,55 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
             out[p, 5] = 0.0
 
 
-@njit(**KERNEL, parallel=True)
-def _batch(gains, edges, ap, cp, rp, ep, x0, out):
-    for b in prange(edges.shape[0] - 1):
-        _block(gains, edges[b], edges[b + 1], ap, cp, rp, ep, x0, out)
+def threads() -> int:
+    """Threads :func:`evaluate` runs on: NUMBA_NUM_THREADS (default: every core)."""
+    return max(1, int(numba.config.NUMBA_NUM_THREADS))
 
 
-def _block_edges(count: int) -> np.ndarray:
-    """Split ``count`` candidates into blocks of at most MAX_LANES, a multiple
-    of the thread count so every core gets the same share."""
-    threads = max(1, numba.get_num_threads())
-    blocks = threads * max(1, math.ceil(count / (threads * MAX_LANES)))
+def _block_edges(count: int, workers: int) -> np.ndarray:
+    """Split ``count`` candidates into blocks of at most LANES, a multiple of
+    the thread count so every core gets the same share."""
+    blocks = workers * max(1, math.ceil(count / (workers * LANES)))
     blocks = max(1, min(blocks, count))
     return np.linspace(0, count, blocks + 1).round().astype(np.int64)
+
+
+_POOL = (None, 0, 0)          # (executor, workers, pid that made it)
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(workers: int):
+    """One thread pool for every call of :func:`evaluate` (starting threads
+    anew cost about 2 ms a call, 4-5 % of scoring 80 candidates). A forked
+    child, which has none of the parent's threads, makes its own."""
+    global _POOL
+    with _POOL_LOCK:
+        pool, size, pid = _POOL
+        if pool is None or size != workers or pid != os.getpid():
+            from concurrent.futures import ThreadPoolExecutor
+            pool = ThreadPoolExecutor(workers, thread_name_prefix="has_control-evaluate")
+            _POOL = (pool, workers, os.getpid())
+        return pool
+
+
+def _run_blocks(gains, arr: "EpisodeArrays", out) -> None:
+    """Every block of ``gains`` on :func:`threads` threads. ``_block`` releases
+    the GIL, so Python threads run blocks in parallel; each block writes its own
+    rows of ``out``, so the result does not depend on the schedule."""
+    if gains.shape[0] == 0:
+        return
+    workers = threads()
+    edges = _block_edges(gains.shape[0], workers)
+    args = (arr.actuator, arr.adaptation, arr.reference, arr.episode, arr.x0, out)
+
+    def run(b):
+        _block(gains, edges[b], edges[b + 1], *args)
+    blocks = range(len(edges) - 1)
+    if workers == 1 or len(blocks) == 1:
+        for b in blocks:
+            run(b)
+        return
+    list(_pool(workers).map(run, blocks))
 
 
 @dataclass(frozen=True)
@@ -244,7 +318,7 @@ def evaluate(gains, cfg: Config | None = None, metrics: bool = False) -> np.ndar
         raise ValueError(f"gains: expected shape (P, 3), got {np.shape(gains)}")
     arr = EpisodeArrays.from_config(cfg)
     out = np.empty((k.shape[0], 6))
-    _batch(k, _block_edges(k.shape[0]), arr.actuator, arr.adaptation, arr.reference, arr.episode, arr.x0, out)
+    _run_blocks(k, arr, out)
     return out[:, :4].copy() if metrics else out[:, 0].copy()
 
 
