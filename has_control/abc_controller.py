@@ -14,9 +14,9 @@ from numba import njit
 from .jit import INLINE, LEAF
 from .actuator import chamber_volumes, valve_drops
 from .params import (
-    A1_MAX, A1_MIN, A2_MAX, A2_MIN, AREA_CAP, AREA_ROD, BULK, GRAVITY, MASS, SIGMA1, SIGMA2, VALVE_GAIN, X3D_BACKWARD, X3D_MODE,
+    A1_MAX, A1_MIN, A2_MAX, A2_MIN, AREA_CAP, AREA_ROD, BULK, GRAVITY, MASS, SIGMA1, SIGMA2, VALVE_GAIN,
+    X3D_BACKWARD, X3D_MODE,
 )
-
 
 
 @njit(**LEAF)

@@ -16,7 +16,6 @@ from .jit import KERNEL, LEAF
 from .params import DT, LAMBDA1, LAMBDA2, LAMBDA3, WIN_END, WIN_START
 
 
-
 @njit(**LEAF)
 def cost_increment(e1, u, ep):
     """(λ1|e1| + λ2·u² + λ3|e1|·[e1 < 0])·Δt for one sample."""

@@ -11,8 +11,9 @@ copies and re-types the callee's IR at every call site, for each kernel:
 measured alternately on empty caches, a cold
 ``simulate --duration 2`` took 3.0 s with it and 2.6-2.8 s with ``forceinline``,
 and a ``tune`` right after it 3.8 s against 1.5 s, since the callees compiled
-for ``simulate`` are cached and serve the batch kernel too (README). Inlining reorders nothing: IEEE arithmetic without fast-math gives
-the same bits either way, and tests prove the batch kernel equal to the
+for ``simulate`` are cached and serve the batch kernel too (README).
+Inlining reorders nothing: IEEE arithmetic without fast-math gives the same
+bits either way, and tests prove the batch kernel equal to the
 single-episode one. They stay callable from Python.
 
 ``LEAF`` marks the smallest of them (chamber volumes, valve drops and flows,

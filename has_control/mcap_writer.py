@@ -276,7 +276,7 @@ class McapWriter:
             index_offsets.append(struct.pack("<HQ", c, self._pos))
             self._emit(_record(MESSAGE_INDEX, struct.pack("<HI", c, entries.nbytes) + entries.tobytes()))
         self._chunk_indexes.append(_record(CHUNK_INDEX, struct.pack("<QQQQ", chunk.start, chunk.end, start,
-                                                                      chunk_end - start)
+                                                                    chunk_end - start)
                                            + _string(b"".join(index_offsets))
                                            + struct.pack("<Q", self._pos - chunk_end) + _string(self.compression)
                                            + struct.pack("<QQ", len(data), len(raw))))

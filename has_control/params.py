@@ -17,9 +17,11 @@ import numpy as np
 # --- actuator array layout --------------------------------------------------
 MASS, AREA_CAP, AREA_ROD, BULK, DAMPING, LEAKAGE, V_CAP0, V_ROD0, GRAVITY, \
     P_SUPPLY, P_RETURN, VALVE_GAIN = range(12)
+N_ACTUATOR = 12
 
 # --- controller (adaptation) array layout ----------------------------------
 SIGMA1, SIGMA2, A1_INIT, A2_INIT, A1_MIN, A2_MIN, A1_MAX, A2_MAX, X3D_MODE = range(9)
+N_CONTROLLER = 9
 X3D_ANALYTIC, X3D_BACKWARD = 0, 1
 X3D_MODES = {"analytic": X3D_ANALYTIC, "backward_difference": X3D_BACKWARD}
 
@@ -31,6 +33,7 @@ REFERENCE_KINDS = {"zero": REF_ZERO, "sine": REF_SINE, "step": REF_STEP, "chirp"
 
 # --- episode array layout ---------------------------------------------------
 DT, N_SAMPLES, LAMBDA1, LAMBDA2, LAMBDA3, WIN_START, WIN_END, Y_LIMIT = range(8)
+N_EPISODE = 8
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,6 @@ import websockets
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
-from test_nodes import context  # noqa: F401  (fixture)
 
 from has_control.bag import msgdef
 from has_control.errors import HasControlError
