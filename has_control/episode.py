@@ -78,6 +78,24 @@ def _constants(ap, cp, ep):
             int(ept[N_SAMPLES]), int(ept[WIN_START]), int(ept[WIN_END]), ept[Y_LIMIT])
 
 
+@njit(**LEAF)
+def put_trace_row(row, t, x1d, y, ydot, p1, p2, u, e1, e2, e3, a1_hat, a2_hat):
+    """One sample's row of a trace, in TRACE_COLUMNS order (the sample's state
+    and the estimates it was controlled with)."""
+    row[0] = t
+    row[1] = x1d
+    row[2] = y
+    row[3] = ydot
+    row[4] = p1
+    row[5] = p2
+    row[6] = u
+    row[7] = e1
+    row[8] = e2
+    row[9] = e3
+    row[10] = a1_hat
+    row[11] = a2_hat
+
+
 @njit(**KERNEL)
 def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
     """Run one episode; fill ``trace`` rows if it has any. Returns
@@ -103,19 +121,7 @@ def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
             x1, x2, x3, x4, a1_hat, a2_hat, x3d, i > 0, r0, r1, r2, r3, k1, k2, k3,
             j, mean, m2, peak, count, in_window, ap, cp, ep, dt, y_limit)
         if record:
-            row = trace[i]
-            row[0] = t
-            row[1] = r0
-            row[2] = x1
-            row[3] = x2
-            row[4] = x3
-            row[5] = x4
-            row[6] = u
-            row[7] = e1
-            row[8] = e2
-            row[9] = e3
-            row[10] = a1_hat
-            row[11] = a2_hat
+            put_trace_row(trace[i], t, r0, x1, x2, x3, x4, u, e1, e2, e3, a1_hat, a2_hat)
         if bad:
             return math.inf, math.inf, math.inf, math.inf, i + 1, True
         x1, x2, x3, x4, a1_hat, a2_hat = y, v, p1, p2, b1, b2

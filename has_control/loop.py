@@ -22,6 +22,7 @@ from numba import njit
 
 from .abc_controller import abc_law, adapt
 from .actuator import diverged, joint_state, plant_step
+from .episode import put_trace_row
 from .jit import KERNEL
 from .reference import reference
 from .topics import (CLOCK_LAYOUT, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, REFERENCE_LAYOUT,
@@ -127,19 +128,7 @@ def controller_sample(data, mem, gains, ap, cp, rp, dt, step_ns, command, intern
     for k in range(5):
         put_f64(ref, _REFERENCE_V[k], rrow[k], scr, sb)
     if i < trace.shape[0]:
-        tr = trace[i]
-        tr[0] = t
-        tr[1] = r0
-        tr[2] = x1
-        tr[3] = x2
-        tr[4] = p1
-        tr[5] = p2
-        tr[6] = u
-        tr[7] = e1
-        tr[8] = e2
-        tr[9] = e3
-        tr[10] = a1_hat
-        tr[11] = a2_hat
+        put_trace_row(trace[i], t, r0, x1, x2, p1, p2, u, e1, e2, e3, a1_hat, a2_hat)
     mem[A1_HAT], mem[A2_HAT] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
     mem[X3D_PREV] = x3d
     mem[HAS_PREV] = 1.0
