@@ -82,18 +82,9 @@ def _constants(ap, cp, ep):
 def put_trace_row(row, t, x1d, y, ydot, p1, p2, u, e1, e2, e3, a1_hat, a2_hat):
     """One sample's row of a trace, in TRACE_COLUMNS order (the sample's state
     and the estimates it was controlled with)."""
-    row[0] = t
-    row[1] = x1d
-    row[2] = y
-    row[3] = ydot
-    row[4] = p1
-    row[5] = p2
-    row[6] = u
-    row[7] = e1
-    row[8] = e2
-    row[9] = e3
-    row[10] = a1_hat
-    row[11] = a2_hat
+    values = (t, x1d, y, ydot, p1, p2, u, e1, e2, e3, a1_hat, a2_hat)
+    for k in range(len(values)):
+        row[k] = values[k]
 
 
 @njit(**KERNEL)
