@@ -31,6 +31,7 @@ import yaml
 
 from . import cdr
 from .errors import HasControlError
+from .files import read_bytes
 from .topics import (  # noqa: F401  (re-exported: the bag code's vocabulary)
     CLOCK, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
     REFERENCE, RUN_TOPICS, STATE, STATE_NAMES, STRING,
@@ -388,7 +389,7 @@ def _decompress(kind: str, data, size: int, where: str) -> bytes:
 
 def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
     """Scan one MCAP file record by record (chunks decompressed as they come)."""
-    buf = f.read_bytes()
+    buf = read_bytes(f, error=BagError)
     bag.size += len(buf)
     if buf[:8] != MAGIC:
         raise BagError(f"{f}: not an MCAP file (no MCAP magic at the start)")

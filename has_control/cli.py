@@ -8,25 +8,28 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from pathlib import Path
-
-import numpy as np
 
 from .errors import HasControlError
 
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+RATE_MIN = 1e-3                     # replay --rate: slower than this is a stalled replay
 
 
 def _gains_arg(values) -> tuple[float, float, float]:
+    from .config import check_gain
     out = []
     for name, v in zip(("K1", "K2", "K3"), values):
         try:
             x = float(v)
         except ValueError:
             raise HasControlError(f"--gains: {name} = {v!r}: expected a number") from None
-        if not (math.isfinite(x) and x > 0):
-            raise HasControlError(f"--gains: {name} = {v!r}: must be a finite number > 0")
+        why = check_gain(x) if math.isfinite(x) else "must be finite"
+        if why:
+            raise HasControlError(f"--gains: {name} = {v!r}: {why}")
         out.append(x)
     return tuple(out)
 
@@ -39,10 +42,12 @@ def _load(args):
 
 
 def _write_trace_csv(trace, path: str) -> None:
+    import numpy as np
+
     from .episode import TRACE_COLUMNS
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(p, trace.data, delimiter=",", header=",".join(TRACE_COLUMNS), comments="", fmt="%.17g")
+    from .files import write_atomic
+    write_atomic(path, lambda tmp: np.savetxt(tmp, trace.data, delimiter=",", header=",".join(TRACE_COLUMNS),
+                                              comments="", fmt="%.17g"))
 
 
 def cmd_simulate(args) -> int:
@@ -267,8 +272,6 @@ def cmd_bag_info(args) -> int:
 
 def cmd_replay(args) -> int:
     from .nodes.replay import replay, replay_controller
-    if not (math.isfinite(args.rate) and args.rate > 0):
-        raise HasControlError(f"--rate {args.rate:g}: must be a number > 0")
     if args.controller:
         r = replay_controller(args.bag, tolerance=args.tolerance)
         print(f"{args.bag}: replayed {r.samples} states to a live controller: "
@@ -289,6 +292,32 @@ def run_node(name: str, ros_args: list[str]) -> int:
     from importlib import import_module
     import_module(f"has_control.nodes.{NODES[name]}").main(args=[f"has-control {name}", *ros_args])
     return 0
+
+
+def _number_at_least(low: float):
+    """An argparse type: a finite number >= ``low``."""
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
+        if not (math.isfinite(v) and v >= low):
+            raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number >= {low:g}")
+        return v
+    return parse
+
+
+_NAME = r"[A-Za-z_][A-Za-z0-9_]*"
+_NAMESPACE = re.compile(rf"/?(?:{_NAME}(?:/{_NAME})*)?")
+
+
+def _namespace(text: str) -> str:
+    """An argparse type: a ROS namespace (``/sim0``, ``sim0/a``; tokens of
+    letters, digits and underscores, not starting with a digit)."""
+    if not _NAMESPACE.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"{text!r}: not a ROS namespace (tokens of letters, digits and _, "
+                                         "not starting with a digit, separated by /)")
+    return text
 
 
 def _positive_int(text: str) -> int:
@@ -350,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
     st = sub.add_parser("stack", help="run plant and controller nodes in one process, lock-step or real time")
     st.add_argument("--duration", type=float, metavar="S", help="horizon [s] (default: config, 10 s)")
     st.add_argument("--gains", nargs=3, metavar=("K1", "K2", "K3"), help="gains [1/s] (default: config)")
-    st.add_argument("--namespace", metavar="NS", help="ROS namespace of both nodes, e.g. /sim0")
+    st.add_argument("--namespace", type=_namespace, metavar="NS", help="ROS namespace of both nodes, e.g. /sim0")
     st.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
     st.add_argument("--json", action="store_true", help="print the keys of simulate --json")
     st.add_argument("--record", metavar="DIR", help="record the run to a rosbag2 MCAP bag DIR")
@@ -364,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--iterations", type=_positive_int, metavar="N", help="with --tune")
     st.add_argument("--evaluator", choices=("batch", "graph"), default="batch",
                     help="with --tune: score candidates in-process (batch) or through the nodes (graph)")
-    st.add_argument("--lanes", nargs="+", metavar="NS", default=None,
+    st.add_argument("--lanes", nargs="+", type=_namespace, metavar="NS", default=None,
                     help="with --tune --evaluator graph: plant/controller pairs in these namespaces")
     st.set_defaults(func=cmd_stack)
 
@@ -381,11 +410,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     rp2 = sub.add_parser("replay", help="publish a bag with its timing, or replay it to a controller")
     rp2.add_argument("bag", metavar="BAG")
-    rp2.add_argument("--rate", type=float, default=1.0, metavar="R", help="time scale (default 1.0)")
+    rp2.add_argument("--rate", type=_number_at_least(RATE_MIN), default=1.0, metavar="R",
+                     help=f"time scale, >= {RATE_MIN:g} (default 1.0)")
     rp2.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
     rp2.add_argument("--controller", action="store_true",
                      help="feed the recorded states to a live controller and compare its commands")
-    rp2.add_argument("--tolerance", type=float, default=0.0, metavar="DU",
+    rp2.add_argument("--tolerance", type=_number_at_least(0.0), default=0.0, metavar="DU",
                      help="with --controller: |du| [m] counted as a match (default 0: bit for bit)")
     rp2.set_defaults(func=cmd_replay)
 
@@ -396,21 +426,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in NODES:
-        return run_node(argv[0], argv[1:])
-    parser = build_parser()
-    args = parser.parse_args(argv)
     try:
+        if argv and argv[0] in NODES:
+            return run_node(argv[0], argv[1:])
+        args = build_parser().parse_args(argv)
         return args.func(args)
     except HasControlError as exc:
         print(f"has-control: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:
-        print(f"has-control: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        print(f"has-control: error: {_os_error_line(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:
+        print("has-control: error: out of memory", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("has-control: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+
+
+def _os_error_line(exc: OSError) -> str:
+    """``PATH: reason`` (both paths of a rename); the path is never left blank."""
+    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
+    return f"{' -> '.join(paths) or '(path unknown)'}: {exc.strerror or exc}"
 
 
 if __name__ == "__main__":
