@@ -126,24 +126,23 @@ def _tuning_args(args):
 
 
 def cmd_tune(args) -> int:
-    from .episode import simulate
-    from .tuning import tune
-    session = swarm = None
+    from .tuning import TuneResult, tune
+    session = swarm = stored = None
     if args.resume:
         from .session import resume
         if args.out and Path(args.out) != Path(args.resume):
             raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")
         r = resume(args.resume)
-        cfg, tuning, swarm, session = r.cfg, r.tuning, r.swarm, r.session
+        cfg, tuning, swarm, session, stored = r.cfg, r.tuning, r.swarm, r.session, r.result
         args.out = args.resume
-        print(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}",
-              file=sys.stderr)
+        print(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}"
+              + (" (finished; writing its results)" if stored else ""), file=sys.stderr)
     else:
         cfg = _load(args)
         tuning = _tuning_args(args)
         if args.out:
             from .session import Session
-            session = Session(args.out, tuning, cfg)
+            session = Session(args.out, tuning, cfg, replace=args.force)
     progress = Progress(f"{tuning.swarm.variant} seed {tuning.seed}")
 
     def each_iteration(sw) -> None:
@@ -151,17 +150,17 @@ def cmd_tune(args) -> int:
         if session is not None:
             session.record(sw)
     try:
-        res = tune(cfg, tuning, callback=each_iteration, swarm=swarm)
+        if stored is not None:
+            res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"])
+        else:
+            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm)
+        out = res.as_json()
+        if session is not None:
+            bag = _finish_session(session, res, out, cfg)
     finally:
         progress.close()
-    out = res.as_json()
-    if args.out:
-        from .plots import plot_convergence, plot_gains
-        d = Path(args.out)
-        bag = session.finish(out, simulate(cfg, res.gains), cfg)
-        (d / "tune.json").write_text(json.dumps(out, indent=1) + "\n")
-        plot_convergence([(res.variant, res.result)], d / "convergence.png")
-        plot_gains(res.result, d / "gains.png", f"{res.variant}, seed {res.seed}")
+        if session is not None:
+            session.release()
     if args.json:
         print(json.dumps(out))
     else:
@@ -174,8 +173,25 @@ def cmd_tune(args) -> int:
     return 0
 
 
+def _finish_session(session, res, out: dict, cfg) -> Path:
+    """The session's result and validation run, its figures, and ``tune.json``
+    last (written then renamed: its presence says the session is finished)."""
+    from .episode import simulate
+    from .files import write_atomic
+    from .plots import plot_convergence, plot_gains
+    from .session import RESULT_FILE
+    d = session.directory
+    bag = session.finish(out, simulate(cfg, res.gains), cfg)
+    plot_convergence([(res.variant, res.result)], d / "convergence.png")
+    plot_gains(res.result, d / "gains.png", f"{res.variant}, seed {res.seed}")
+    write_atomic(d / RESULT_FILE, json.dumps(out, indent=1) + "\n")
+    return bag
+
+
 def cmd_reproduce(args) -> int:
+    from .files import check_new_output
     from .reproduce import run_experiment, write_report
+    check_new_output(args.out, args.force, "directory")
     cfg = _load(args)
     tuning = _tuning_args(args)
 
@@ -365,6 +381,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the session bag DIR/session (resumable), tune.json, convergence.png, gains.png")
     t.add_argument("--resume", metavar="DIR",
                    help="continue the session in DIR from its last complete iteration (its settings apply)")
+    t.add_argument("--force", action="store_true",
+                   help="with --out: replace the session and tune.json already in DIR")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.set_defaults(func=cmd_tune)
 
@@ -372,6 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--seeds", type=_positive_int, default=10, metavar="N", help="seeds 1..N (default 10)")
     rp.add_argument("--out", default="out/reproduce", metavar="DIR", help="report directory")
     rp.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
+    rp.add_argument("--force", action="store_true", help="write into DIR even if it is not empty")
     rp.add_argument("--particles", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
     rp.add_argument("--iterations", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
     rp.set_defaults(func=cmd_reproduce, duration=None, variant=None, seed=None)

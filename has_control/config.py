@@ -181,7 +181,7 @@ def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
-def load_yaml(text: str, where: str, error: type[Exception] = ConfigError) -> Any:
+def load_yaml(text: str, where: str, error: type[Exception] = ConfigError, what: str = "not valid YAML") -> Any:
     """One YAML document under :class:`_Loader`'s rules; ``error`` naming
     ``where`` and the line if it is not valid."""
     try:
@@ -191,9 +191,9 @@ def load_yaml(text: str, where: str, error: type[Exception] = ConfigError) -> An
         line = f" at line {mark.line + 1}" if mark else ""
         problem = getattr(exc, "problem", None)
         why = f": {' '.join(str(problem).split())}" if problem else ""
-        raise error(f"{where}: not valid YAML{line}{why}") from None
+        raise error(f"{where}: {what}{line}{why}") from None
     except ValueError as exc:                  # e.g. an integer of more digits than Python converts
-        raise error(f"{where}: not valid YAML: {' '.join(str(exc).split())[:120]}") from None
+        raise error(f"{where}: {what}: {' '.join(str(exc).split())[:120]}") from None
 
 
 def read_parameter_file(path: str | Path) -> dict[str, Any]:
