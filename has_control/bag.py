@@ -401,13 +401,19 @@ def _decompress(kind: str, data, size: int, where: str) -> bytes:
         return bytes(data)
     if kind == "zstd":
         import zstandard
-        return zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=size)
+        data = bytes(data)
+        declared = zstandard.frame_content_size(data)
+        if declared > size:                    # a damaged frame header: never allocate what it claims
+            raise BagError(f"{where}: a zstd frame declares {declared} bytes in a chunk of {size}")
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
     if kind == "lz4":
         import lz4.frame
         return lz4.frame.decompress(bytes(data))
     raise BagError(f"{where}: unsupported chunk compression {kind!r}")
 
 
+#: A chunk's records, uncompressed, are at most this [bytes] (ours are about 1 MiB).
+MAX_CHUNK_BYTES = 1 << 30
 #: Footer record: opcode, length 20, summary start, summary offset start, summary CRC [bytes].
 FOOTER_BYTES = 29
 _CHUNK, _DATA_END, _FOOTER, _METADATA = 0x06, 0x0F, 0x02, 0x0C
@@ -434,14 +440,18 @@ def _chunk_records(rec, f: Path, offset: int) -> tuple[bytes | None, str]:
     """The uncompressed records of the Chunk whose content is ``rec``, checked
     against its size and CRC (CRC 0: not computed, accepted); else None and why."""
     size, crc = struct.unpack_from("<QI", rec, 16)
+    if size > MAX_CHUNK_BYTES:
+        return None, f"declares {size} uncompressed bytes, more than the limit of {MAX_CHUNK_BYTES}"
     kind, q = _string(rec, 28)
     clen = struct.unpack_from("<Q", rec, q)[0]
     if q + 8 + clen > len(rec):
         return None, "its compressed size runs past the record"
     try:
         raw = _decompress(kind, rec[q + 8:q + 8 + clen], size, str(f))
-    except BagError:
-        raise
+    except BagError as exc:
+        if "unsupported chunk compression" in str(exc):
+            raise
+        return None, str(exc).split(": ", 1)[-1]
     except Exception as exc:                                  # zstd/lz4 on damaged bytes
         return None, f"does not decompress ({type(exc).__name__})"
     if len(raw) != size:
@@ -679,6 +689,10 @@ def describe(bag: Bag) -> str:
         lines.append(f"  Topic: {t:<{width}} | Type: {bag.types[t]} | Count: {bag.count(t)} | "
                      f"Serialization Format: {bag.encodings.get(t) or 'unknown'}")
     if PARAMETERS_KEY in bag.custom_data:
-        lines.append(f"custom_data:       {PARAMETERS_KEY} ({len(json.loads(bag.custom_data[PARAMETERS_KEY]))} parameters)")
+        try:
+            what = f"{len(json.loads(bag.custom_data[PARAMETERS_KEY]))} parameters"
+        except (ValueError, TypeError):
+            what = "not JSON"
+        lines.append(f"custom_data:       {PARAMETERS_KEY} ({what})")
     return "\n".join(lines)
 
