@@ -20,14 +20,15 @@ RATE_MIN = 1e-3                     # replay --rate: slower than this is a stall
 
 
 def _gains_arg(values) -> tuple[float, float, float]:
-    from .config import check_gain
+    """--gains K1 K2 K3, checked as the config checks gains.k1..k3."""
+    from .config import check_gain, finite_number
     out = []
     for name, v in zip(("K1", "K2", "K3"), values):
         try:
-            x = float(v)
+            x = finite_number(float(v))
         except ValueError:
-            raise HasControlError(f"--gains: {name} = {v!r}: expected a number") from None
-        why = check_gain(x) if math.isfinite(x) else "must be finite"
+            x = "expected a number"
+        why = x if isinstance(x, str) else check_gain(x)
         if why:
             raise HasControlError(f"--gains: {name} = {v!r}: {why}")
         out.append(x)

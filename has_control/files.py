@@ -21,9 +21,10 @@ from .errors import HasControlError
 MiB = 1 << 20
 
 
-def io_error(path: str | Path, exc: OSError, doing: str) -> HasControlError:
-    """One line naming ``path``: ``PATH: cannot read: No space left on device``."""
-    return HasControlError(f"{path}: cannot {doing}: {exc.strerror or exc}")
+def io_error(path: str | Path, exc: OSError, doing: str,
+             error: type[HasControlError] = HasControlError) -> HasControlError:
+    """One line naming ``path``: ``PATH: cannot write: No space left on device``."""
+    return error(f"{path}: cannot {doing}: {exc.strerror or exc}")
 
 
 def regular_file(path: str | Path, limit: int | None = None,
@@ -33,7 +34,7 @@ def regular_file(path: str | Path, limit: int | None = None,
     try:
         st = path.stat()
     except OSError as exc:
-        raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
+        raise io_error(path, exc, "read", error) from None
     if not stat.S_ISREG(st.st_mode):
         kind = "a directory" if stat.S_ISDIR(st.st_mode) else "not a regular file (a FIFO or device?)"
         raise error(f"{path}: {kind}: expected a regular file")
@@ -50,7 +51,7 @@ def read_bytes(path: str | Path, limit: int | None = None,
         with open(path, "rb") as f:
             data = f.read() if limit is None else f.read(limit + 1)
     except OSError as exc:
-        raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
+        raise io_error(path, exc, "read", error) from None
     if limit is not None and len(data) > limit:
         raise error(f"{path}: larger than the limit of {limit} bytes")
     return data
