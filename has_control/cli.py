@@ -311,17 +311,22 @@ def run_node(name: str, ros_args: list[str]) -> int:
     return 0
 
 
-def _number_at_least(low: float):
-    """An argparse type: a finite number >= ``low``."""
-    def parse(text: str) -> float:
+def _at_least(low: float, kind: type = float):
+    """An argparse type: a finite number (``kind`` int: a whole number) >= ``low``."""
+    expected = "a whole number" if kind is int else "a number"
+
+    def parse(text: str):
         try:
-            v = float(text)
+            v = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
-        if not (math.isfinite(v) and v >= low):
-            raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number >= {low:g}")
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}") from None
+        if not ((kind is int or math.isfinite(v)) and v >= low):
+            raise argparse.ArgumentTypeError(f"{text!r}: must be {expected} >= {low:g}")
         return v
     return parse
+
+
+_positive_int = _at_least(1, int)
 
 
 _NAME = r"[A-Za-z_][A-Za-z0-9_]*"
@@ -335,16 +340,6 @@ def _namespace(text: str) -> str:
         raise argparse.ArgumentTypeError(f"{text!r}: not a ROS namespace (tokens of letters, digits and _, "
                                          "not starting with a digit, separated by /)")
     return text
-
-
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: must be >= 1")
-    return v
 
 
 class _Parser(argparse.ArgumentParser):
@@ -430,12 +425,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     rp2 = sub.add_parser("replay", help="publish a bag with its timing, or replay it to a controller")
     rp2.add_argument("bag", metavar="BAG")
-    rp2.add_argument("--rate", type=_number_at_least(RATE_MIN), default=1.0, metavar="R",
+    rp2.add_argument("--rate", type=_at_least(RATE_MIN), default=1.0, metavar="R",
                      help=f"time scale, >= {RATE_MIN:g} (default 1.0)")
     rp2.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
     rp2.add_argument("--controller", action="store_true",
                      help="feed the recorded states to a live controller and compare its commands")
-    rp2.add_argument("--tolerance", type=_number_at_least(0.0), default=0.0, metavar="DU",
+    rp2.add_argument("--tolerance", type=_at_least(0.0), default=0.0, metavar="DU",
                      help="with --controller: |du| [m] counted as a match (default 0: bit for bit)")
     rp2.set_defaults(func=cmd_replay)
 

@@ -124,10 +124,13 @@ class DirectoryLock:
             fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             os.close(self._fd)
+            self._fd = None
             raise HasControlError(f"{directory}: {what} is in use by another process "
                                   f"(lock {self.path} held)") from None
 
     def release(self) -> None:
-        if self._fd is not None:
+        if getattr(self, "_fd", None) is not None:
             os.close(self._fd)
             self._fd = None
+
+    __del__ = release

@@ -37,6 +37,7 @@ def argparse_error(capsys, argv, *culprits):
     (["simulate", "--duration", "1e9"], ["--duration", "simulation.horizon", "limit"]),
     (["tune", "--duration", "1e308"], ["--duration", "simulation.horizon", "limit"]),
     (["tune", "--particles", "99999999999"], ["swarm.particles", "limit"]),
+    (["tune", "--particles", "9" * 400], ["swarm.particles", "limit"]),
     (["tune", "--particles", "100000", "--iterations", "1000"], ["swarm.iterations", "evaluations"]),
     (["tune", "--seed", "-1"], ["swarm.seed = -1"]),
     (["simulate", "--gains", "2e6", "150", "150"], ["--gains: K1 = '2e6'", "1e+06"]),

@@ -133,6 +133,5 @@ def test_a_full_disk_under_the_bag_writer_names_the_bag(tmp_path, capsys, monkey
         w.write("/x", 1, b"\0" * 64)
         w.sync()
     monkeypatch.setattr(cli, "cmd_bag_info", record_to_a_full_disk)
-    monkeypatch.setitem(cli.build_parser.__globals__, "cmd_bag_info", record_to_a_full_disk)
     rc, _, err = run(capsys, "bag-info", "x")
     one_line(rc, err, str(tmp_path / "bag" / "bag.mcap"), "No space left on device")
