@@ -40,4 +40,28 @@ def _load_compiled_modules() -> None:
         numba.config.CACHE_DIR = previous
 
 
-_load_compiled_modules()
+def _exit_quietly_on_interrupt(signum, frame):
+    import sys
+    print("has-control: interrupted", file=sys.stderr)
+    raise SystemExit(130)
+
+
+def _load_quietly() -> None:
+    """:func:`_load_compiled_modules`, with Ctrl-C during it (the first second
+    of every command, before ``cli.main`` can catch anything) ending the
+    process with one line and status 130 instead of a traceback. Only when
+    Python's own SIGINT handler is in place (main thread, nobody else's)."""
+    import signal
+    import threading
+    ours = (threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+    if ours:
+        signal.signal(signal.SIGINT, _exit_quietly_on_interrupt)
+    try:
+        _load_compiled_modules()
+    finally:
+        if ours:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+_load_quietly()

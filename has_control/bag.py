@@ -21,6 +21,7 @@ import json
 import struct
 import sys
 import threading
+import zlib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -31,6 +32,7 @@ import yaml
 
 from . import cdr
 from .errors import HasControlError
+from .files import MiB, read_bytes, read_text
 from .topics import (  # noqa: F401  (re-exported: the bag code's vocabulary)
     CLOCK, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
     REFERENCE, RUN_TOPICS, STATE, STATE_NAMES, STRING,
@@ -272,7 +274,9 @@ class Bag:
     qos: dict[str, str] = field(default_factory=dict)
     messages: dict[str, list[tuple[int, bytes]]] = field(default_factory=dict)
     custom_data: dict[str, str] = field(default_factory=dict)
+    encodings: dict[str, str] = field(default_factory=dict)     # topic -> message encoding
     complete: bool = True
+    damage: list[str] = field(default_factory=list)             # why not complete, one item per finding
     lost_bytes: int = 0
     size: int = 0
     on_warning: Callable[[str], None] = field(default=warn, repr=False)
@@ -310,11 +314,28 @@ class Bag:
 
     @property
     def start_ns(self) -> int:
-        return min((m[0][0] for m in self.messages.values() if m), default=0)
+        return min((min(t for t, _ in m) for m in self.messages.values() if m), default=0)
 
     @property
     def end_ns(self) -> int:
-        return max((m[-1][0] for m in self.messages.values() if m), default=0)
+        return max((max(t for t, _ in m) for m in self.messages.values() if m), default=0)
+
+    def damage_summary(self) -> str:
+        """Why the bag is incomplete, in a few words."""
+        chunks = sum("chunk at offset" in d for d in self.damage)
+        rest = [d.split(" (")[0] if "chunk at offset" not in d else "" for d in self.damage]
+        parts = ([f"{chunks} corrupted chunk{'s' if chunks > 1 else ''} skipped"] if chunks else [])
+        return "; ".join(parts + [r for r in rest if r]) or "incomplete"
+
+    def sort_by_log_time(self, on_warning) -> None:
+        """Each topic's messages in log-time order (as MCAP readers give them),
+        with a warning naming the topics that were not."""
+        unordered = [t for t, m in self.messages.items() if any(a[0] > b[0] for a, b in zip(m, m[1:]))]
+        for t in unordered:
+            self.messages[t].sort(key=lambda m: m[0])
+        if unordered:
+            on_warning(f"{self.path}: messages out of log-time order on {', '.join(sorted(unordered))} "
+                       "(a reordered bag): read in log-time order")
 
 
 def read_bag(path: str | Path, topics: Iterable[str] | None = None,
@@ -339,16 +360,17 @@ def read_bag(path: str | Path, topics: Iterable[str] | None = None,
         bag.files = [path]
     for f in bag.files:
         _read_mcap(f, bag, wanted, on_warning)
+    bag.sort_by_log_time(on_warning)
     return bag
 
 
+#: metadata.yaml is read whole; larger is not a rosbag2 metadata file [bytes].
+MAX_METADATA_BYTES = 16 * MiB
+
+
 def _files_from_metadata(meta: Path, bag: Bag) -> list[Path]:
-    try:
-        doc = yaml.safe_load(meta.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        line = getattr(getattr(exc, "problem_mark", None), "line", None)
-        where = f" (line {line + 1})" if line is not None else ""
-        raise BagError(f"{meta}: malformed YAML{where}") from None
+    from .config import load_yaml
+    doc = load_yaml(read_text(meta, MAX_METADATA_BYTES, BagError), str(meta), BagError, "malformed YAML")
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     if not isinstance(info, dict):
         raise BagError(f"{meta}: no rosbag2_bagfile_information mapping")
@@ -388,25 +410,90 @@ def _decompress(kind: str, data, size: int, where: str) -> bytes:
         return bytes(data)
     if kind == "zstd":
         import zstandard
-        return zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=size)
+        data = bytes(data)
+        declared = zstandard.frame_content_size(data)
+        if declared > size:                    # a damaged frame header: never allocate what it claims
+            raise BagError(f"{where}: a zstd frame declares {declared} bytes in a chunk of {size}")
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
     if kind == "lz4":
         import lz4.frame
         return lz4.frame.decompress(bytes(data))
     raise BagError(f"{where}: unsupported chunk compression {kind!r}")
 
 
+#: A chunk's records, uncompressed, are at most this [bytes] (ours are about 1 MiB).
+MAX_CHUNK_BYTES = 1 << 30
+#: Footer record: opcode, length 20, summary start, summary offset start, summary CRC [bytes].
+FOOTER_BYTES = 29
+_CHUNK, _DATA_END, _FOOTER, _METADATA = 0x06, 0x0F, 0x02, 0x0C
+
+
+def _has_footer(buf: bytes) -> bool:
+    """Whether ``buf`` ends in an MCAP footer record and the magic."""
+    n = len(buf)
+    at = n - 8 - FOOTER_BYTES
+    return (at >= 8 and buf[n - 8:] == MAGIC and buf[at] == _FOOTER
+            and struct.unpack_from("<Q", buf, at + 1)[0] == FOOTER_BYTES - 9)
+
+
+def _check_summary(buf: bytes, f: Path, on_warning) -> None:
+    """Warn if the summary section's CRC (in the footer) does not match; the
+    reader does not use the summary, so the bag stays complete."""
+    at = len(buf) - 8 - FOOTER_BYTES
+    start, crc = struct.unpack_from("<Q", buf, at + 9)[0], struct.unpack_from("<I", buf, at + 25)[0]
+    if crc and 0 < start <= at and zlib.crc32(buf[start:at + 25]) != crc:
+        on_warning(f"{f}: summary section CRC mismatch (the summary is not used for reading)")
+
+
+def _chunk_records(rec, f: Path, offset: int) -> tuple[bytes | None, str]:
+    """The uncompressed records of the Chunk whose content is ``rec``, checked
+    against its size and CRC (CRC 0: not computed, accepted); else None and why."""
+    size, crc = struct.unpack_from("<QI", rec, 16)
+    if size > MAX_CHUNK_BYTES:
+        return None, f"declares {size} uncompressed bytes, more than the limit of {MAX_CHUNK_BYTES}"
+    kind, q = _string(rec, 28)
+    clen = struct.unpack_from("<Q", rec, q)[0]
+    if q + 8 + clen > len(rec):
+        return None, "its compressed size runs past the record"
+    try:
+        raw = _decompress(kind, rec[q + 8:q + 8 + clen], size, str(f))
+    except BagError as exc:
+        if "unsupported chunk compression" in str(exc):
+            raise
+        return None, str(exc).split(": ", 1)[-1]
+    except Exception as exc:                                  # zstd/lz4 on damaged bytes
+        return None, f"does not decompress ({type(exc).__name__})"
+    if len(raw) != size:
+        return None, f"decompresses to {len(raw)} bytes, not {size}"
+    if crc and zlib.crc32(raw) != crc:
+        return None, "CRC mismatch"
+    return raw, ""
+
+
 def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
-    """Scan one MCAP file record by record (chunks decompressed as they come)."""
-    buf = f.read_bytes()
+    """Scan one MCAP file record by record (chunks decompressed and checked
+    as they come). A chunk whose CRC or size does not match is named, skipped
+    and the bag marked incomplete; so is a data section whose CRC does not
+    match (DataEnd), and a record that cannot be parsed ends the scan: as a
+    truncation if the file has no footer, as damage if it has one."""
+    buf = read_bytes(f, error=BagError)
     bag.size += len(buf)
     if buf[:8] != MAGIC:
         raise BagError(f"{f}: not an MCAP file (no MCAP magic at the start)")
     schemas: dict[int, str] = {}
     channels: dict[int, str] = {}
-    pos, good, chunks, footer = 8, 8, 0, False
+    footer = _has_footer(buf)
+    pos, chunks, bad_chunks, data_end, data_checked = 8, 0, 0, False, False
     n = len(buf)
 
-    def take(records: memoryview, origin: str) -> None:
+    def damaged(what: str) -> None:
+        bag.complete = False
+        bag.damage.append(what)
+        on_warning(f"{f}: {what}")
+
+    def take(records, origin: str) -> None:
+        """Schemas, channels and messages of ``records``, kept only if all parse."""
+        got: list[tuple[str, int, bytes]] = []
         p, end = 0, len(records)
         while p + 9 <= end:
             op = records[p]
@@ -419,7 +506,7 @@ def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
                 topic = channels.get(cid)
                 if topic is not None and (wanted is None or topic in wanted):
                     t = struct.unpack_from("<Q", records, body + 6)[0]
-                    bag.messages[topic].append((t, bytes(records[body + 22:body + ln])))
+                    got.append((topic, t, bytes(records[body + 22:body + ln])))
             elif op == 0x03:                                 # Schema
                 sid = struct.unpack_from("<H", records, body)[0]
                 name, _ = _string(records, body + 2)
@@ -427,14 +514,17 @@ def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
             elif op == 0x04:                                 # Channel
                 cid, sid = struct.unpack_from("<HH", records, body)
                 topic, q = _string(records, body + 4)
-                _enc, q = _string(records, q)
+                enc, q = _string(records, q)
                 meta, _ = _string_map(records, q)
                 if cid not in channels:
                     channels[cid] = topic
                     bag.types.setdefault(topic, schemas.get(sid, ""))
+                    bag.encodings.setdefault(topic, enc)
                     bag.qos.setdefault(topic, meta.get("offered_qos_profiles", ""))
                     bag.messages.setdefault(topic, [])
             p = body + ln
+        for topic, t, data in got:
+            bag.messages[topic].append((t, data))
 
     view = memoryview(buf)
     try:
@@ -443,47 +533,71 @@ def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
             ln = struct.unpack_from("<Q", buf, pos + 1)[0]
             body = pos + 9
             if body + ln > n:
-                break                                         # truncated record
+                break                                         # truncated (or damaged) record
             rec = view[body:body + ln]
-            if op == 0x06:                                   # Chunk
-                size = struct.unpack_from("<Q", rec, 16)[0]
-                kind, q = _string(rec, 28)
-                clen = struct.unpack_from("<Q", rec, q)[0]
-                take(memoryview(_decompress(kind, rec[q + 8:q + 8 + clen], size, str(f))), str(f))
-                chunks += 1
+            if op == _CHUNK:
+                raw, why = _chunk_records(rec, f, pos)
+                if raw is None:
+                    bad_chunks += 1
+                    damaged(f"chunk at offset {pos} is corrupted ({why}): skipped")
+                else:
+                    try:
+                        take(memoryview(raw), f"{f}: chunk at offset {pos}")
+                        chunks += 1
+                    except (struct.error, UnicodeDecodeError, BagError):
+                        bad_chunks += 1
+                        damaged(f"chunk at offset {pos} holds a malformed record: skipped")
             elif op in (0x03, 0x04, 0x05):
                 take(view[pos:body + ln], str(f))
-            elif op == 0x0C:                                 # Metadata
+            elif op == _METADATA:
                 name, q = _string(rec, 0)
                 meta, _ = _string_map(rec, q)
-                if name == "rosbag2" and "serialized_metadata" in meta and not bag.custom_data:
-                    _custom_from_serialized(meta["serialized_metadata"], bag)
-            elif op == 0x02:                                 # Footer
-                footer = True
-                good = body + ln
+                if name == "rosbag2" and "serialized_metadata" in meta:
+                    _custom_from_serialized(meta["serialized_metadata"], bag, f)
+            elif op == _DATA_END:
+                crc = struct.unpack_from("<I", rec, 0)[0] if ln >= 4 else 0
+                if crc and zlib.crc32(view[:pos]) != crc and not bad_chunks:
+                    damaged("data section CRC mismatch (a record outside the chunks is damaged)")
+                data_end, data_checked = True, crc != 0
+                pos = body + ln
                 break
-            pos = good = body + ln
-    except (struct.error, UnicodeDecodeError, ValueError) as exc:
-        if isinstance(exc, BagError):
-            raise
+            elif op == _FOOTER:
+                break
+            pos = body + ln
+    except (struct.error, UnicodeDecodeError, BagError):
         pass                                                  # a torn record: stop at the last good one
-    except Exception as exc:                                  # zstd on a torn chunk
-        if type(exc).__name__ != "ZstdError":
-            raise
-    if footer and buf[good:good + 8] == MAGIC:
+    if data_end and footer:
+        _check_summary(buf, f, on_warning)
+        return
+    if data_end and data_checked:          # the data section is all there and its CRC checked
+        on_warning(f"{f}: the summary or footer after the data section is damaged; "
+                   "the data section is intact (its CRC checked)")
+        return
+    lost = n - pos
+    if footer:
+        damaged(f"damaged record at offset {pos} (the footer is there: not a truncation): "
+                f"kept {chunks} chunks, {sum(map(len, bag.messages.values()))} messages; "
+                f"the last {lost} bytes unread")
+        bag.lost_bytes += lost
         return
     bag.complete = False
-    bag.lost_bytes += n - good
+    bag.lost_bytes += lost
+    bag.damage.append(f"truncated, {lost} bytes lost")
     on_warning(f"{f}: truncated (no MCAP footer): kept {chunks} complete chunks, "
-               f"{sum(map(len, bag.messages.values()))} messages; lost the last {n - good} bytes")
+               f"{sum(map(len, bag.messages.values()))} messages; lost the last {lost} bytes")
 
 
-def _custom_from_serialized(text: str, bag: Bag) -> None:
+def _custom_from_serialized(text: str, bag: Bag, f: Path) -> None:
+    """custom_data of the MCAP file's rosbag2 Metadata record, if metadata.yaml
+    gave none (metadata.yaml's wins: it may be edited on purpose)."""
+    from .config import load_yaml
+    if bag.custom_data:
+        return
     try:
-        doc = yaml.safe_load(text)
+        doc = load_yaml(text, f"{f} (rosbag2 metadata)", BagError)
         info = doc.get("rosbag2_bagfile_information", doc)     # rosbag2 stores the inner mapping
         bag.custom_data.update({str(k): str(v) for k, v in (info.get("custom_data") or {}).items()})
-    except (yaml.YAMLError, AttributeError):
+    except (BagError, AttributeError):
         pass
 
 
@@ -517,6 +631,11 @@ class RecordedRun:
 
 def _by_sample(stamps_ns: np.ndarray, step_ns: int, what: str, path) -> np.ndarray:
     idx = np.rint(stamps_ns / step_ns).astype(np.int64)
+    if len(idx) and not np.array_equal(idx, np.arange(len(idx))) and np.array_equal(np.sort(idx),
+                                                                                      np.arange(len(idx))):
+        first = int(np.argmax(idx != np.arange(len(idx))))
+        raise BagError(f"{path}: {what}: message {first} carries sample {idx[first]}: the samples are "
+                       "reordered (log times and header stamps disagree)")
     if len(idx) and not np.array_equal(idx, np.arange(len(idx))):
         dup = len(idx) - len(np.unique(idx))
         raise BagError(f"{path}: {what} is not one message per sample from sample 0 "
@@ -525,7 +644,11 @@ def _by_sample(stamps_ns: np.ndarray, step_ns: int, what: str, path) -> np.ndarr
 
 
 def recorded_run(bag: Bag, overrides: Iterable[str | Path] = ()) -> RecordedRun:
-    """The samples of a lock-step run in ``bag``: states, commands and reference."""
+    """The samples of a lock-step run in ``bag``: states, commands and reference.
+    An incomplete bag (truncated or damaged) is refused: its J would not be the run's."""
+    if not bag.complete:
+        raise BagError(f"{bag.path}: the bag is incomplete ({bag.damage_summary()}); "
+                       "an incomplete run is not scored")
     cfg = bag.config(overrides)
     step_ns = int(round(cfg.episode.step * 1e9))
     st, cm, rf = bag.find(STATE, JOINT_STATE), bag.find(COMMAND, JOINT_STATE), bag.find(REFERENCE, FLOAT64_ARRAY)
@@ -570,13 +693,17 @@ def describe(bag: Bag) -> str:
              f"Start:             {bag.start_ns / 1e9:.6f} s",
              f"End:               {bag.end_ns / 1e9:.6f} s",
              f"Messages:          {total}",
-             f"Complete:          {'yes' if bag.complete else f'no (truncated, {bag.lost_bytes} bytes lost)'}",
+             f"Complete:          {'yes' if bag.complete else f'no ({bag.damage_summary()})'}",
              "Topic information:"]
     width = max((len(t) for t in bag.types), default=0)
     for t in sorted(bag.types):
         lines.append(f"  Topic: {t:<{width}} | Type: {bag.types[t]} | Count: {bag.count(t)} | "
-                     "Serialization Format: cdr")
+                     f"Serialization Format: {bag.encodings.get(t) or 'unknown'}")
     if PARAMETERS_KEY in bag.custom_data:
-        lines.append(f"custom_data:       {PARAMETERS_KEY} ({len(json.loads(bag.custom_data[PARAMETERS_KEY]))} parameters)")
+        try:
+            what = f"{len(json.loads(bag.custom_data[PARAMETERS_KEY]))} parameters"
+        except (ValueError, TypeError):
+            what = "not JSON"
+        lines.append(f"custom_data:       {PARAMETERS_KEY} ({what})")
     return "\n".join(lines)
 

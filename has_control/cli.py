@@ -8,25 +8,29 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 from pathlib import Path
-
-import numpy as np
 
 from .errors import HasControlError
 
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+RATE_MIN = 1e-3                     # replay --rate: slower than this is a stalled replay
 
 
 def _gains_arg(values) -> tuple[float, float, float]:
+    """--gains K1 K2 K3, checked as the config checks gains.k1..k3."""
+    from .config import check_gain, finite_number
     out = []
     for name, v in zip(("K1", "K2", "K3"), values):
         try:
-            x = float(v)
+            x = finite_number(float(v))
         except ValueError:
-            raise HasControlError(f"--gains: {name} = {v!r}: expected a number") from None
-        if not (math.isfinite(x) and x > 0):
-            raise HasControlError(f"--gains: {name} = {v!r}: must be a finite number > 0")
+            x = "expected a number"
+        why = x if isinstance(x, str) else check_gain(x)
+        if why:
+            raise HasControlError(f"--gains: {name} = {v!r}: {why}")
         out.append(x)
     return tuple(out)
 
@@ -39,10 +43,12 @@ def _load(args):
 
 
 def _write_trace_csv(trace, path: str) -> None:
+    import numpy as np
+
     from .episode import TRACE_COLUMNS
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(p, trace.data, delimiter=",", header=",".join(TRACE_COLUMNS), comments="", fmt="%.17g")
+    from .files import write_atomic
+    write_atomic(path, lambda tmp: np.savetxt(tmp, trace.data, delimiter=",", header=",".join(TRACE_COLUMNS),
+                                              comments="", fmt="%.17g"))
 
 
 def cmd_simulate(args) -> int:
@@ -121,24 +127,23 @@ def _tuning_args(args):
 
 
 def cmd_tune(args) -> int:
-    from .episode import simulate
-    from .tuning import tune
-    session = swarm = None
+    from .tuning import TuneResult, tune
+    session = swarm = stored = None
     if args.resume:
         from .session import resume
         if args.out and Path(args.out) != Path(args.resume):
             raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")
         r = resume(args.resume)
-        cfg, tuning, swarm, session = r.cfg, r.tuning, r.swarm, r.session
+        cfg, tuning, swarm, session, stored = r.cfg, r.tuning, r.swarm, r.session, r.result
         args.out = args.resume
-        print(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}",
-              file=sys.stderr)
+        print(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}"
+              + (" (finished; writing its results)" if stored else ""), file=sys.stderr)
     else:
         cfg = _load(args)
         tuning = _tuning_args(args)
         if args.out:
             from .session import Session
-            session = Session(args.out, tuning, cfg)
+            session = Session(args.out, tuning, cfg, replace=args.force)
     progress = Progress(f"{tuning.swarm.variant} seed {tuning.seed}")
 
     def each_iteration(sw) -> None:
@@ -146,20 +151,17 @@ def cmd_tune(args) -> int:
         if session is not None:
             session.record(sw)
     try:
-        res = tune(cfg, tuning, callback=each_iteration, swarm=swarm)
+        if stored is not None:
+            res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"])
+        else:
+            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm)
+        out = res.as_json()
+        if session is not None:
+            bag = _finish_session(session, res, out, cfg)
     finally:
         progress.close()
-    out = res.as_json()
-    if args.out:
-        from .config import write_gains_params
-        from .plots import plot_convergence, plot_gains
-        d = Path(args.out)
-        bag = session.finish(out, simulate(cfg, res.gains), cfg)
-        (d / "tune.json").write_text(json.dumps(out, indent=1) + "\n")
-        write_gains_params(d / "gains.yaml", res.gains, f"has-control tune: {res.variant}, seed {res.seed}, "
-                           f"J = {res.result.fun:.6e}; use with --ros-args --params-file")
-        plot_convergence([(res.variant, res.result)], d / "convergence.png")
-        plot_gains(res.result, d / "gains.png", f"{res.variant}, seed {res.seed}")
+        if session is not None:
+            session.release()
     if args.json:
         print(json.dumps(out))
     else:
@@ -173,8 +175,28 @@ def cmd_tune(args) -> int:
     return 0
 
 
+def _finish_session(session, res, out: dict, cfg) -> Path:
+    """The session's result and validation run, its figures, and ``tune.json``
+    last (written then renamed: its presence says the session is finished)."""
+    from .config import write_gains_params
+    from .episode import simulate
+    from .files import write_atomic
+    from .plots import plot_convergence, plot_gains
+    from .session import RESULT_FILE
+    d = session.directory
+    bag = session.finish(out, simulate(cfg, res.gains), cfg)
+    plot_convergence([(res.variant, res.result)], d / "convergence.png")
+    plot_gains(res.result, d / "gains.png", f"{res.variant}, seed {res.seed}")
+    write_gains_params(d / "gains.yaml", res.gains, f"has-control tune: {res.variant}, seed {res.seed}, "
+                       f"J = {res.result.fun:.6e}; use with --ros-args --params-file")
+    write_atomic(d / RESULT_FILE, json.dumps(out, indent=1) + "\n")
+    return bag
+
+
 def cmd_reproduce(args) -> int:
+    from .files import check_new_output
     from .reproduce import run_experiment, write_report
+    check_new_output(args.out, args.force, "directory")
     cfg = _load(args)
     tuning = _tuning_args(args)
 
@@ -276,8 +298,6 @@ def cmd_bag_info(args) -> int:
 
 def cmd_replay(args) -> int:
     from .nodes.replay import replay, replay_controller
-    if not (math.isfinite(args.rate) and args.rate > 0):
-        raise HasControlError(f"--rate {args.rate:g}: must be a number > 0")
     if args.controller:
         r = replay_controller(args.bag, tolerance=args.tolerance)
         print(f"{args.bag}: replayed {r.samples} states to a live controller: "
@@ -300,14 +320,35 @@ def run_node(name: str, ros_args: list[str]) -> int:
     return 0
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: must be >= 1")
-    return v
+def _at_least(low: float, kind: type = float):
+    """An argparse type: a finite number (``kind`` int: a whole number) >= ``low``."""
+    expected = "a whole number" if kind is int else "a number"
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}") from None
+        if not ((kind is int or math.isfinite(v)) and v >= low):
+            raise argparse.ArgumentTypeError(f"{text!r}: must be {expected} >= {low:g}")
+        return v
+    return parse
+
+
+_positive_int = _at_least(1, int)
+
+
+_NAME = r"[A-Za-z_][A-Za-z0-9_]*"
+_NAMESPACE = re.compile(rf"/?(?:{_NAME}(?:/{_NAME})*)?")
+
+
+def _namespace(text: str) -> str:
+    """An argparse type: a ROS namespace (``/sim0``, ``sim0/a``; tokens of
+    letters, digits and underscores, not starting with a digit)."""
+    if not _NAMESPACE.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"{text!r}: not a ROS namespace (tokens of letters, digits and _, "
+                                         "not starting with a digit, separated by /)")
+    return text
 
 
 def _port(text: str) -> int:
@@ -357,6 +398,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "convergence.png, gains.png")
     t.add_argument("--resume", metavar="DIR",
                    help="continue the session in DIR from its last complete iteration (its settings apply)")
+    t.add_argument("--force", action="store_true",
+                   help="with --out: replace the session and tune.json already in DIR")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.set_defaults(func=cmd_tune)
 
@@ -364,6 +407,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--seeds", type=_positive_int, default=10, metavar="N", help="seeds 1..N (default 10)")
     rp.add_argument("--out", default="out/reproduce", metavar="DIR", help="report directory")
     rp.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
+    rp.add_argument("--force", action="store_true", help="write into DIR even if it is not empty")
     rp.add_argument("--particles", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
     rp.add_argument("--iterations", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
     rp.set_defaults(func=cmd_reproduce, duration=None, variant=None, seed=None)
@@ -371,7 +415,7 @@ def build_parser() -> argparse.ArgumentParser:
     st = sub.add_parser("stack", help="run plant and controller nodes in one process, lock-step or real time")
     st.add_argument("--duration", type=float, metavar="S", help="horizon [s] (default: config, 10 s)")
     st.add_argument("--gains", nargs=3, metavar=("K1", "K2", "K3"), help="gains [1/s] (default: config)")
-    st.add_argument("--namespace", metavar="NS", help="ROS namespace of both nodes, e.g. /sim0")
+    st.add_argument("--namespace", type=_namespace, metavar="NS", help="ROS namespace of both nodes, e.g. /sim0")
     st.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
     st.add_argument("--json", action="store_true", help="print the keys of simulate --json")
     st.add_argument("--record", metavar="DIR", help="record the run to a rosbag2 MCAP bag DIR")
@@ -387,7 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--iterations", type=_positive_int, metavar="N", help="with --tune")
     st.add_argument("--evaluator", choices=("batch", "graph"), default="batch",
                     help="with --tune: score candidates in-process (batch) or through the nodes (graph)")
-    st.add_argument("--lanes", nargs="+", metavar="NS", default=None,
+    st.add_argument("--lanes", nargs="+", type=_namespace, metavar="NS", default=None,
                     help="with --tune --evaluator graph: plant/controller pairs in these namespaces")
     st.set_defaults(func=cmd_stack)
 
@@ -404,11 +448,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     rp2 = sub.add_parser("replay", help="publish a bag with its timing, or replay it to a controller")
     rp2.add_argument("bag", metavar="BAG")
-    rp2.add_argument("--rate", type=float, default=1.0, metavar="R", help="time scale (default 1.0)")
+    rp2.add_argument("--rate", type=_at_least(RATE_MIN), default=1.0, metavar="R",
+                     help=f"time scale, >= {RATE_MIN:g} (default 1.0)")
     rp2.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
     rp2.add_argument("--controller", action="store_true",
                      help="feed the recorded states to a live controller and compare its commands")
-    rp2.add_argument("--tolerance", type=float, default=0.0, metavar="DU",
+    rp2.add_argument("--tolerance", type=_at_least(0.0), default=0.0, metavar="DU",
                      help="with --controller: |du| [m] counted as a match (default 0: bit for bit)")
     rp2.set_defaults(func=cmd_replay)
 
@@ -419,21 +464,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in NODES:
-        return run_node(argv[0], argv[1:])
-    parser = build_parser()
-    args = parser.parse_args(argv)
     try:
+        if argv and argv[0] in NODES:
+            return run_node(argv[0], argv[1:])
+        args = build_parser().parse_args(argv)
         return args.func(args)
     except HasControlError as exc:
         print(f"has-control: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:
-        print(f"has-control: error: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        print(f"has-control: error: {_os_error_line(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:
+        print("has-control: error: out of memory", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("has-control: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+
+
+def _os_error_line(exc: OSError) -> str:
+    """``PATH: reason`` (both paths of a rename); the path is never left blank."""
+    paths = [str(p) for p in (exc.filename, exc.filename2) if p is not None]
+    return f"{' -> '.join(paths) or '(path unknown)'}: {exc.strerror or exc}"
 
 
 if __name__ == "__main__":

@@ -23,7 +23,8 @@ from typing import Any, Callable, Iterable, Mapping
 
 import yaml
 
-from .errors import ConfigError
+from .errors import ConfigError, shown
+from .files import MiB, read_text
 from .params import (
     X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Reference,
 )
@@ -42,6 +43,18 @@ def _config_dir() -> Path:
 
 #: The reference configuration files shipped with the package.
 CONFIG_DIR = _config_dir()
+
+
+#: Limits checked before anything is allocated or parsed.
+MAX_CONFIG_BYTES = 1 * MiB          # a parameter file [bytes]
+MAX_YAML_DEPTH = 32                 # nesting of mappings and lists in one
+MAX_SAMPLES = 10_000_000            # samples of one episode: a trace of 12 float64 columns is 960 MB
+GAIN_MAX = 1.0e6                    # [1/s]; the nodes' range descriptor on gains.k1..k3 says the same
+
+
+def check_gain(v: float) -> str | None:
+    """The range of a back-stepping gain (config, --gains, tuning bounds)."""
+    return None if 0 < v <= GAIN_MAX else f"must be > 0 and <= {GAIN_MAX:g}"
 
 
 def _positive(v: float) -> str | None:
@@ -86,7 +99,7 @@ _register("actuator", "actuator", {
     "discharge_coefficient": ("float", _positive), "area_gradient": ("float", _positive),
     "oil_density": ("float", _positive), "valve_gain": ("float", _positive),
 })
-_register("gains", "gains", {k: ("float", _positive) for k in ("k1", "k2", "k3")})
+_register("gains", "gains", {k: ("float", check_gain) for k in ("k1", "k2", "k3")})
 _register("adaptation", "adaptation", {
     "gain": ("pair", _pair(_non_negative)), "initial": ("pair", _pair(_any)),
     "lower": ("pair", _pair(_any)), "upper": ("pair", _pair(_any)),
@@ -115,7 +128,38 @@ _PASSTHROUGH_KEYS = {"use_sim_time"}
 
 class _Loader(yaml.SafeLoader):
     """SafeLoader that reads ``7.0e8`` and ``1e-3`` as floats, as ROS 2's
-    parameter parser does (PyYAML's YAML 1.1 rules read them as strings)."""
+    parameter parser does (PyYAML's YAML 1.1 rules read them as strings),
+    and refuses what a parameter file has no use for and an attacker does:
+    aliases (self-reference, alias bombs), nesting deeper than
+    :data:`MAX_YAML_DEPTH`, and a key given twice in one mapping."""
+
+    def __init__(self, stream):
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, f"alias *{event.anchor}: aliases are not accepted",
+                                              event.start_mark)
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise yaml.composer.ComposerError(None, None, f"nested deeper than {MAX_YAML_DEPTH} levels",
+                                                  self.peek_event().start_mark)
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key, _ in node.value:
+            if isinstance(key, yaml.ScalarNode):
+                if key.value in seen:
+                    raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key.value!r}",
+                                                            key.start_mark)
+                seen.add(key.value)
+        return super().construct_mapping(node, deep)
 
 
 _Loader.add_implicit_resolver(
@@ -136,23 +180,30 @@ def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+def load_yaml(text: str, where: str, error: type[Exception] = ConfigError, what: str = "not valid YAML") -> Any:
+    """One YAML document under :class:`_Loader`'s rules; ``error`` naming
+    ``where`` and the line if it is not valid."""
+    try:
+        return yaml.load(text, Loader=_Loader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f" at line {mark.line + 1}" if mark else ""
+        problem = getattr(exc, "problem", None)
+        why = f": {' '.join(str(problem).split())}" if problem else ""
+        raise error(f"{where}: {what}{line}{why}") from None
+    except ValueError as exc:                  # e.g. an integer of more digits than Python converts
+        raise error(f"{where}: {what}: {' '.join(str(exc).split())[:120]}") from None
+
+
 def read_parameter_file(path: str | Path) -> dict[str, Any]:
     """Flat parameters of every node section of one ``ros__parameters`` file.
 
     Sections are merged in file order (``/**`` and node names alike); a file
-    without any ``ros__parameters`` section is an error.
+    without any ``ros__parameters`` section is an error. Only a regular UTF-8
+    file of at most :data:`MAX_CONFIG_BYTES` is read.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    try:
-        doc = yaml.load(text, Loader=_Loader)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        raise ConfigError(f"{path}: not valid YAML{where}") from None
+    doc = load_yaml(read_text(path, MAX_CONFIG_BYTES, ConfigError), str(path))
     if not isinstance(doc, Mapping):
         raise ConfigError(f"{path}: expected a mapping of node names to ros__parameters")
     flat: dict[str, Any] = {}
@@ -179,16 +230,25 @@ def read_parameter_files(files: Iterable[str | Path]) -> tuple[dict[str, Any], d
     return flat, sources
 
 
+def finite_number(v: Any) -> float | str:
+    """``v`` as a finite float, else why not (a string)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return "expected a number"
+    try:
+        v = float(v)
+    except OverflowError:                      # an integer of hundreds of digits
+        return "must be finite"
+    return v if math.isfinite(v) else "must be finite"
+
+
 def _coerce(key: str, value: Any, kind: Any, source: str) -> Any:
     def bad(why: str) -> ConfigError:
-        return ConfigError(f"{source}: {key} = {value!r}: {why}")
+        return ConfigError(f"{source}: {key} = {shown(value)}: {why}")
 
     def number(v: Any) -> float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise bad("expected a number")
-        v = float(v)
-        if not math.isfinite(v):
-            raise bad("must be finite")
+        v = finite_number(v)
+        if isinstance(v, str):
+            raise bad(v)
         return v
 
     if kind == "float":
@@ -225,7 +285,7 @@ def build_config(flat: Mapping[str, Any], source: str = "parameters",
         if check is not None:
             msg = check(v)
             if msg:
-                raise ConfigError(f"{where(key)}: {key} = {value!r}: {msg}")
+                raise ConfigError(f"{where(key)}: {key} = {shown(value)}: {msg}")
         sections[section][attr] = v
     cfg = Config(
         actuator=Actuator(**sections["actuator"]), gains=Gains(**sections["gains"]),
@@ -241,7 +301,7 @@ def _check_relations(cfg: Config, flat: Mapping[str, Any], where) -> None:
     a, ad, ep = cfg.actuator, cfg.adaptation, cfg.episode
 
     def fail(key: str, value: Any, why: str):
-        raise ConfigError(f"{where(key)}: {key} = {value!r}: {why}")
+        raise ConfigError(f"{where(key)}: {key} = {shown(value)}: {why}")
 
     if a.supply_pressure <= a.return_pressure:
         fail("actuator.supply_pressure", a.supply_pressure,
@@ -257,6 +317,11 @@ def _check_relations(cfg: Config, flat: Mapping[str, Any], where) -> None:
             fail("adaptation.initial", list(ad.initial), f"initial[{i}] outside [lower, upper]")
     if ep.step >= ep.horizon:
         fail("simulation.step", ep.step, f"must be smaller than simulation.horizon ({ep.horizon})")
+    if ep.horizon / ep.step > MAX_SAMPLES:
+        key = "simulation.step" if "simulation.step" in flat else "simulation.horizon"
+        fail(key, getattr(ep, key.split(".")[1]),
+             f"{ep.horizon:g} s in steps of {ep.step:g} s is {ep.horizon / ep.step:.4g} samples, "
+             f"more than the limit of {MAX_SAMPLES:,}")
     start, end = ep.window()
     if ep.skip_start + ep.skip_end >= ep.horizon or start > end:
         key = "metrics.skip_end" if "metrics.skip_end" in flat else "metrics.skip_start"
@@ -329,9 +394,6 @@ def gains_params_yaml(gains, note: str = "") -> str:
 
 
 def write_gains_params(path: str | Path, gains, note: str = "") -> Path:
-    """Write :func:`gains_params_yaml` to ``path`` (through a temporary file, then renamed)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(gains_params_yaml(gains, note))
-    tmp.replace(path)
-    return path
+    """Write :func:`gains_params_yaml` to ``path`` (written then renamed)."""
+    from .files import write_atomic
+    return write_atomic(path, gains_params_yaml(gains, note))

@@ -154,9 +154,25 @@ class McapWriter:
         self._emit(MAGIC + _record(HEADER, _string(profile) + _string(library)))
 
     def _emit(self, data: bytes) -> None:
-        self._file.write(data)
+        with self._naming_path():
+            self._file.write(data)
         self._pos += len(data)
         self._crc = zlib.crc32(data, self._crc)
+
+    def _naming_path(self):
+        """A context in which an OSError (a full disk) names this file."""
+        import contextlib
+        path = self.path
+
+        @contextlib.contextmanager
+        def naming():
+            try:
+                yield
+            except OSError as exc:
+                if exc.filename is not None:
+                    raise
+                raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
+        return naming()
 
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
         """Write a Schema record; its id."""
@@ -286,7 +302,8 @@ class McapWriter:
         crash after this loses nothing written so far."""
         self._write_pending()
         self._close_chunk()
-        self._file.flush()
+        with self._naming_path():
+            self._file.flush()
 
     def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
         """Write the rest, the Metadata records ``{name: {key: value}}``, the
@@ -319,5 +336,6 @@ class McapWriter:
         footer = struct.pack("<BQQQ", FOOTER, 20, summary_start, summary_start + len(summary))
         summary += offsets
         self._emit(summary + footer + struct.pack("<I", zlib.crc32(footer, zlib.crc32(summary))) + MAGIC)
-        self._file.close()
+        with self._naming_path():
+            self._file.close()
         self.closed = True

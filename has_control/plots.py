@@ -63,11 +63,12 @@ def plot_gains(result, path: str | Path, title: str = "") -> Path:
 
 
 def _save(fig, path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    """Write the figure (then rename: never half a PNG) and close it."""
+    from .files import write_atomic
+    try:
+        return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format=Path(path).suffix[1:] or "png"))
+    finally:
+        plt.close(fig)
 
 
 def plot_convergence_spread(groups, path: str | Path) -> Path:

@@ -69,9 +69,9 @@ def run_experiment(seeds: int, tuning: Tuning | None = None, cfg: Config | None 
 
 def write_report(rows: list[Row], out: Path, cfg: Config | None = None,
                  upper: tuple[float, float, float] = Tuning().upper) -> Path:
+    from .files import write_atomic
     from .plots import plot_convergence_spread, plot_gains, plot_tracking
     cfg = cfg or Config()
-    out.mkdir(parents=True, exist_ok=True)
     seeds = len(rows[0].runs)
     best = {r.label: r.best() for r in rows}
     main_rows = rows[:3]
@@ -131,10 +131,8 @@ def write_report(rows: list[Row], out: Path, cfg: Config | None = None,
     lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figs]
     lines += ["", "## Where we agree with the paper, and where not", "",
               _verdict(rows, traces, upper)]
-    (out / "tables.json").write_text(json.dumps(tables, indent=1, default=_jsonable) + "\n")
-    report = out / "report.md"
-    report.write_text("\n".join(lines) + "\n")
-    return report
+    write_atomic(out / "tables.json", json.dumps(tables, indent=1, default=_jsonable) + "\n")
+    return write_atomic(out / "report.md", "\n".join(lines) + "\n")
 
 
 def _verdict(rows: list[Row], traces, upper: tuple[float, float, float]) -> str:

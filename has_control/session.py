@@ -26,7 +26,9 @@ import shutil
 import time
 from pathlib import Path
 
-from .bag import PARAMETERS_KEY, STRING, BagError, BagWriter, QosSpec, parameters_json, read_bag, write_trace
+from .bag import PARAMETERS_KEY, STRING, BagError, BagWriter, QosSpec, parameters_json, read_bag, warn, write_trace
+from .errors import HasControlError
+from .files import DirectoryLock
 from .swarm import Swarm, SwarmSettings, record_dict, record_from
 from .tuning import Tuning
 
@@ -34,6 +36,8 @@ SESSION = "session"
 SETTINGS, ITERATION, SWARM, RESULT = "/tuner/settings", "/tuner/iteration", "/tuner/swarm", "/tuner/result"
 VALIDATION = "/validation"
 TUNING_KEY = "has_control/tuning"
+LOCK = ".lock"                      # DIR/.lock: flock'ed by the one process writing the session
+RESULT_FILE = "tune.json"           # written last: its presence says the session is finished
 
 
 def tuning_json(t: Tuning) -> dict:
@@ -55,13 +59,25 @@ def _unstring(data: bytes) -> str:
     return data[8:8 + n - 1].decode()
 
 
+def _json(data: bytes) -> dict | None:
+    """The JSON object a std_msgs/String message carries, None if it is damaged."""
+    try:
+        doc = json.loads(_unstring(data))
+    except (ValueError, UnicodeDecodeError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
 class Session:
     """Writes one tuning session's bag (see the module's docstring)."""
 
     def __init__(self, directory: str | Path, tuning: Tuning, cfg, evaluator: str = "batch",
-                 _copy_from=None):
+                 _copy_from=None, _lock: DirectoryLock | None = None, replace: bool = False):
         self.directory = Path(directory)
         self.path = self.directory / SESSION
+        self.lock = _lock or DirectoryLock(self.directory, LOCK, "the tuning session")
+        if _copy_from is None:
+            self._clear(replace)
         settings = {"tuning": tuning_json(tuning), "evaluator": evaluator,
                     "parameters": json.loads(parameters_json(cfg))}
         self.writer = BagWriter(self.path, {PARAMETERS_KEY: parameters_json(cfg),
@@ -74,6 +90,20 @@ class Session:
             for topic, t, data in _copy_from:
                 self.writer.write(topic, t, data)
         self.writer.sync()
+
+    def _clear(self, replace: bool) -> None:
+        """Refuse an existing session or result here, or (``replace``) remove them."""
+        old = [p for p in (self.path, self.directory / RESULT_FILE, self.directory / (SESSION + ".interrupted"))
+               if p.exists()]
+        if old and not replace:
+            self.lock.release()
+            raise HasControlError(f"{old[0]}: exists already; --force to overwrite")
+        for p in old:
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+    def release(self) -> None:
+        """Let another process write this session (also when this one ends)."""
+        self.lock.release()
 
     def record(self, swarm: Swarm) -> None:
         """After an iteration: its record and the swarm's state, then flush."""
@@ -100,54 +130,86 @@ class Resumed:
     cfg: object
     evaluator: str
     session: Session
+    result: dict | None = None          # the stored result of a session whose final writes were cut short
 
 
-def resume(directory: str | Path) -> Resumed:
-    """The session in ``directory`` at its last complete iteration, writing on.
+def resume(directory: str | Path, on_warning=warn) -> Resumed:
+    """The session in ``directory`` at its last good iteration, writing on.
 
-    The surviving bag is moved to ``session.interrupted``, its complete
-    iterations are copied into a fresh ``session`` bag (flushed), and only
-    then is the old one deleted: a crash during resume loses nothing.
+    The directory is locked first (a second resume is refused). The surviving
+    bag is moved to ``session.interrupted``, its good iterations are copied
+    into a fresh ``session`` bag (flushed), and only then is the old one
+    deleted: a crash during resume loses nothing. Iterations are good up to
+    the first one whose record or swarm state is missing, damaged or
+    inconsistent (a corrupted chunk is skipped by the reader); the session
+    resumes from the one before, with a warning, which gives the same
+    result. A session whose result is stored but whose ``tune.json`` is not
+    (the final writes were interrupted) comes back with ``result`` set.
     """
     from .config import build_config
     d = Path(directory)
     old = d / (SESSION + ".interrupted")
     cur = d / SESSION
+    if not (old.exists() or cur.exists()):
+        raise BagError(f"{cur}: no session bag to resume (was the session started with --out {d}?)")
+    lock = DirectoryLock(d, LOCK, "the tuning session")
     if old.exists():                      # an earlier resume was interrupted: start from its source
         if cur.exists():
             shutil.rmtree(cur)
     elif cur.exists():
         cur.rename(old)
-    else:
-        raise BagError(f"{cur}: no session bag to resume (was the session started with --out {d}?)")
-    bag = read_bag(old, topics=(SETTINGS, ITERATION, SWARM, RESULT))
-    if bag.messages.get(RESULT):
+    bag = read_bag(old, topics=(SETTINGS, ITERATION, SWARM, RESULT), on_warning=on_warning)
+    results = [r for r in (_json(x) for _, x in bag.messages.get(RESULT) or []) if r is not None]
+    if results and (d / RESULT_FILE).exists():
         old.rename(cur)
-        raise BagError(f"{cur}: the session has finished already (see {d / 'tune.json'})")
+        lock.release()
+        raise BagError(f"{cur}: the session has finished already (see {d / RESULT_FILE})")
     settings = bag.messages.get(SETTINGS) or []
-    if not settings:
-        raise BagError(f"{old}: no {SETTINGS} message; cannot resume")
-    s = json.loads(_unstring(settings[0][1]))
-    tuning = tuning_from_json(s["tuning"])
-    cfg = build_config(s["parameters"], source=f"{old} ({SETTINGS})")
+    s = _json(settings[0][1]) if settings else None
+    try:
+        tuning = tuning_from_json(s["tuning"])
+    except (TypeError, KeyError, ValueError):
+        lock.release()
+        raise BagError(f"{old}: no readable {SETTINGS} message; cannot resume") from None
+    cfg = build_config(s.get("parameters") or {}, source=f"{old} ({SETTINGS})")
     states = bag.messages.get(SWARM) or []
     records = bag.messages.get(ITERATION) or []
-    if states:
-        state = json.loads(_unstring(states[-1][1]))
-        k = int(state["iteration"])
-        state["history"] = [json.loads(_unstring(r)) for _, r in records[:k]]
-        if len(state["history"]) != k:
-            raise BagError(f"{old}: {len(records)} iteration records for a swarm at iteration {k}")
-        swarm = Swarm.from_state(state)
-    else:
-        k = 0
+    k, swarm = _last_good_iteration(records, states)
+    if k < max(len(records), len(states)) or not bag.complete:
+        on_warning(f"{old}: records damaged or missing after iteration {k}: resuming from iteration {k}, "
+                   "the last good one")
+    if swarm is None:
         swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
     keep = [(SETTINGS, *settings[0])]
     keep += [(ITERATION, *r) for r in records[:k]] + [(SWARM, *x) for x in states[:k]]
     keep.sort(key=lambda m: m[1])
-    session = Session(d, tuning, cfg, s.get("evaluator", "batch"), _copy_from=keep)
+    session = Session(d, tuning, cfg, s.get("evaluator", "batch"), _copy_from=keep, _lock=lock)
     shutil.rmtree(old)
-    return Resumed(swarm, tuning, cfg, s.get("evaluator", "batch"), session)
+    return Resumed(swarm, tuning, cfg, s.get("evaluator", "batch"), session,
+                   results[-1] if results and swarm.done else None)
+
+
+def _last_good_iteration(records, states) -> tuple[int, Swarm | None]:
+    """The largest k such that iterations 0..k-1 each have a record and a
+    swarm state that parse and agree, and the swarm restored from state k-1."""
+    k = 0
+    parsed = []
+    for (_, r), (_, x) in zip(records, states):
+        rec, state = _json(r), _json(x)
+        if rec is None or state is None or rec.get("iteration") != k or state.get("iteration") != k + 1:
+            break
+        parsed.append((rec, state))
+        k += 1
+    while k:
+        state = dict(parsed[k - 1][1], history=[rec for rec, _ in parsed[:k]])
+        try:
+            swarm = Swarm.from_state(state)
+            if len(swarm.history) == k and all(h.iteration == i for i, h in enumerate(swarm.history)):
+                return k, swarm
+        except (HasControlError, KeyError, TypeError, ValueError, IndexError):
+            pass
+        k -= 1
+    return 0, None
 
 
 def swarm_result(directory: str | Path):

@@ -22,7 +22,7 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import HasControlError
+from .errors import HasControlError, shown
 from .json_numbers import list_to_json
 
 
@@ -40,6 +40,11 @@ VARIANTS = {"pso": Variant(crazy_particles=False, tvac=False),
             "pso-cp-tvac": Variant(crazy_particles=True, tvac=True)}
 CRAZY_REDRAWS = ("positive", "symmetric")
 CRAZY_PROBABILITIES = ("exp-difference", "exp-ratio")
+#: Limits checked before a swarm is allocated: positions, velocities and
+#: personal bests are particles x dimensions, the history keeps every
+#: iteration's positions (particles x iterations x dimensions float64).
+MAX_PARTICLES = 100_000
+MAX_EVALUATIONS = 10_000_000        # particles x iterations
 
 
 class SwarmError(HasControlError, ValueError):
@@ -78,7 +83,7 @@ class SwarmSettings:
 
     def validate(self) -> "SwarmSettings":
         def bad(name, why):
-            raise SwarmError(f"swarm.{name} = {getattr(self, name)!r}: {why}")
+            raise SwarmError(f"swarm.{name} = {shown(getattr(self, name))}: {why}")
         if self.variant not in VARIANTS:
             bad("variant", f"expected one of {', '.join(VARIANTS)}")
         if self.crazy_redraw not in CRAZY_REDRAWS:
@@ -89,11 +94,18 @@ class SwarmSettings:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 bad(name, "must be a whole number >= 1")
+        if self.particles > MAX_PARTICLES:
+            bad("particles", f"more than the limit of {MAX_PARTICLES:,}")
+        if self.particles * self.iterations > MAX_EVALUATIONS:
+            bad("iterations", f"{self.particles} particles x {self.iterations} iterations is more than "
+                              f"the limit of {MAX_EVALUATIONS:,} evaluations")
         for name in ("target", "velocity_limit", "inertia_max", "inertia_min", "c1", "c2",
                      "c1_start", "c1_end", "c2_start", "c2_end"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or math.isnan(v):
                 bad(name, "expected a number")
+            if name != "target" and not math.isfinite(v):
+                bad(name, "must be finite")
         if not self.velocity_limit > 0 or not math.isfinite(self.velocity_limit):
             bad("velocity_limit", "must be a finite number > 0")
         if self.inertia_min > self.inertia_max:

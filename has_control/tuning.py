@@ -13,9 +13,9 @@ from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
-from .config import default_config_files, read_parameter_files
+from .config import check_gain, default_config_files, finite_number, read_parameter_files
 from .episode import evaluate
-from .errors import ConfigError
+from .errors import ConfigError, shown
 from .params import Config
 from .swarm import Swarm, SwarmError, SwarmResult, SwarmSettings, minimize
 
@@ -40,7 +40,14 @@ class Tuning:
         top = {k: changes.pop(k) for k in ("seed", "lower", "upper") if k in changes}
         t = dataclasses.replace(self, swarm=dataclasses.replace(self.swarm, **changes), **top)
         t.swarm.validate()
-        Swarm(t.bounds, dataclasses.replace(t.swarm, particles=1), 0)    # bounds check
+        if isinstance(t.seed, bool) or not isinstance(t.seed, int) or not 0 <= t.seed < 2**64:
+            raise SwarmError(f"swarm.seed = {shown(t.seed)}: must be a whole number in [0, 2^64)")
+        Swarm(t.bounds, dataclasses.replace(t.swarm, particles=1, iterations=1), 0)    # bounds check
+        for name in ("lower", "upper"):
+            for i, v in enumerate(getattr(t, name)):
+                why = check_gain(v)
+                if why:
+                    raise SwarmError(f"bounds: swarm.{name}[{i}] = {v:g}: a gain {why}")
         return t
 
 
@@ -63,7 +70,7 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
         where[name] = (sources or {}).get(key, "parameters")
 
         def bad(why):
-            return ConfigError(f"{where[name]}: {key} = {value!r}: {why}")
+            return ConfigError(f"{where[name]}: {key} = {shown(value)}: {why}")
         if name not in fields:
             raise bad("unknown parameter")
         if name in _INT_KEYS:
@@ -73,14 +80,15 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
             if not isinstance(value, str):
                 raise bad("expected a string")
         elif name in _LIST_KEYS:
-            if (not isinstance(value, (list, tuple)) or len(value) != 3
-                    or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value)):
-                raise bad("expected a list of three numbers")
-            value = tuple(float(v) for v in value)
-        elif isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise bad("expected a number")
+            numbers = [finite_number(v) for v in value] if isinstance(value, (list, tuple)) else []
+            if len(numbers) != 3 or any(isinstance(v, str) for v in numbers):
+                raise bad("expected a list of three finite numbers")
+            value = tuple(numbers)
         else:
-            value = float(value)
+            number = finite_number(value)
+            if isinstance(number, str):
+                raise bad(number)
+            value = number
         changes[name] = value
     try:
         return t.replace(**changes)
@@ -88,7 +96,8 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
         msg = str(exc)
         culprit = next((n for n in changes if msg.startswith(f"swarm.{n} ")), None)
         if culprit is None and msg.startswith("bounds"):
-            culprit = next((n for n in ("lower", "upper") if n in changes), None)
+            named = [n for n in ("lower", "upper") if n in changes and f"swarm.{n}[" in msg]
+            culprit = next(iter(named or [n for n in ("lower", "upper") if n in changes]), None)
         origin = where.get(culprit, "parameters") if culprit else ", ".join(sorted(set(where.values())))
         raise ConfigError(f"{origin}: {msg}") from None
 

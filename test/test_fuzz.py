@@ -1,0 +1,133 @@
+"""Issue #11: a fuzz test of the config loader and the bag reader. Random and
+mutated inputs (seeded, bounded in count and time): every input gives a
+result or a one-line HasControlError, never another exception, never a hang."""
+import dataclasses
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from has_control.bag import STRING, BagWriter, describe, read_bag, recorded_run
+from has_control.config import CONFIG_DIR, load_config
+from has_control.errors import HasControlError
+from has_control.tuning import load_tuning
+
+CONFIG_CASES = 300          # inputs to the config loader (about 2 s)
+BAG_CASES = 1400            # inputs to the bag reader (about 4 s)
+SECONDS = 6.0               # per target, at most, on a loaded machine
+HANG = 2.0                  # one input taking longer than this is a hang [s]
+
+YAML_TOKENS = [b": ", b"[", b"]", b"{", b"}", b"&a ", b"*a", b"- ", b"\t", b"\n", b"!!python/object:os.system ",
+               b"1e999", b"-1", b".nan", b".inf", b"~", b'"', b"'", b"#", b"? ", b"<<: ", b"9" * 400,
+               b"ros__parameters:", b"/**:", b"  ", b"\xff", b"\x00", b"%YAML 1.2\n", b"---\n", b"..."]
+
+
+class Hang(Exception):
+    pass
+
+
+def _alarm(signum, frame):
+    raise Hang()
+
+
+def _mutate(rng, data: bytes, tokens=()) -> bytes:
+    b = bytearray(data)
+    for _ in range(int(rng.integers(1, 6))):
+        op = int(rng.integers(0, 6 if tokens else 5))
+        at = int(rng.integers(0, len(b) + 1)) if b else 0
+        if op == 0 and b:                                   # flip a bit
+            b[min(at, len(b) - 1)] ^= 1 << int(rng.integers(0, 8))
+        elif op == 1:                                       # delete a run
+            del b[at:at + int(rng.integers(1, 64))]
+        elif op == 2:                                       # random bytes
+            b[at:at] = rng.integers(0, 256, int(rng.integers(1, 16)), dtype=np.uint8).tobytes()
+        elif op == 3:                                       # truncate
+            del b[at:]
+        elif op == 4 and b:                                 # duplicate a slice elsewhere
+            a = int(rng.integers(0, len(b)))
+            b[at:at] = b[a:a + int(rng.integers(1, 256))]
+        elif op == 5:
+            b[at:at] = tokens[int(rng.integers(0, len(tokens)))]
+    return bytes(b)
+
+
+def _fuzz(seeds: list[bytes], check, tmp_path, name: str, seed: int, cases: int, tokens=()):
+    rng = np.random.default_rng(seed)
+    path = tmp_path / name
+    old = signal.signal(signal.SIGALRM, _alarm)
+    counts = {"accepted": 0, "refused": 0}
+    t0 = time.perf_counter()
+    try:
+        for i in range(cases):
+            if time.perf_counter() - t0 > SECONDS:
+                break
+            kind = i % 10
+            if kind == 0:                                   # random input
+                data = rng.integers(0, 256, int(rng.integers(0, 2048)), dtype=np.uint8).tobytes()
+                if i % 20 == 0:
+                    data = seeds[0][:8] + data               # past the magic, for the bag reader
+            else:
+                data = _mutate(rng, seeds[i % len(seeds)], tokens)
+            path.write_bytes(data)
+            signal.setitimer(signal.ITIMER_REAL, HANG)
+            try:
+                check(path)
+                counts["accepted"] += 1
+            except HasControlError as exc:
+                assert "\n" not in str(exc), (i, str(exc))
+                counts["refused"] += 1
+            except Hang:
+                pytest.fail(f"{name} case {i} hangs (seed {seed})")
+            except Exception as exc:                        # noqa: BLE001 - the point of the test
+                (tmp_path / f"{name}.case{i}").write_bytes(data)
+                pytest.fail(f"{name} case {i} (kept as {name}.case{i}): {type(exc).__name__}: {exc}")
+            finally:
+                signal.setitimer(signal.ITIMER_REAL, 0)
+    finally:
+        signal.signal(signal.SIGALRM, old)
+    assert sum(counts.values()) >= 50
+    print(f"{name}: {sum(counts.values())} inputs in {time.perf_counter() - t0:.1f} s: {counts}")
+    return counts
+
+
+def test_fuzz_the_config_loader(tmp_path):
+    seeds = [p.read_bytes() for p in sorted(CONFIG_DIR.glob("*.yaml"))]
+
+    def check(path):
+        load_config([path])
+        load_tuning([path])
+    _fuzz(seeds, check, tmp_path, "config.yaml", seed=2026, cases=CONFIG_CASES, tokens=YAML_TOKENS)
+
+
+@pytest.fixture(scope="module")
+def small_bags(tmp_path_factory):
+    from has_control.bag import PARAMETERS_KEY, parameters_json, write_trace
+    from has_control.episode import simulate, with_horizon
+    from has_control.params import Config
+    out = []
+    for compression in ("zstd", "none"):
+        cfg = with_horizon(Config(), 1.5)
+        d = tmp_path_factory.mktemp("fuzz") / f"run-{compression}"
+        w = BagWriter(d, {PARAMETERS_KEY: parameters_json(cfg)}, compression=compression)
+        w._mcap.chunk_bytes = 16 << 10
+        tr = simulate(cfg)
+        tr = dataclasses.replace(tr, data=tr.data[:200])    # a short run: small bag, many chunks
+        write_trace(w, tr, cfg)
+        w.add_topic("/note", STRING)
+        w.write("/note", 1, b"\x00\x01\x00\x00\x05\x00\x00\x00hello\x00")
+        w.close()
+        out.append((d / f"{d.name}.mcap").read_bytes())
+    return out
+
+
+def test_fuzz_the_bag_reader(small_bags, tmp_path, capsys):
+    def check(path):
+        bag = read_bag(path, on_warning=lambda m: None)
+        describe(bag)
+        if bag.complete:
+            try:
+                recorded_run(bag)
+            except HasControlError:
+                pass
+    _fuzz(small_bags, check, tmp_path, "bag.mcap", seed=2027, cases=BAG_CASES)
