@@ -631,8 +631,8 @@ class RecordedRun:
 
 def _by_sample(stamps_ns: np.ndarray, step_ns: int, what: str, path) -> np.ndarray:
     idx = np.rint(stamps_ns / step_ns).astype(np.int64)
-    if len(idx) and not np.array_equal(idx, np.arange(len(idx))) and np.array_equal(np.sort(idx),
-                                                                                      np.arange(len(idx))):
+    grid = np.arange(len(idx))
+    if len(idx) and not np.array_equal(idx, grid) and np.array_equal(np.sort(idx), grid):
         first = int(np.argmax(idx != np.arange(len(idx))))
         raise BagError(f"{path}: {what}: message {first} carries sample {idx[first]}: the samples are "
                        "reordered (log times and header stamps disagree)")
@@ -706,4 +706,3 @@ def describe(bag: Bag) -> str:
             what = "not JSON"
         lines.append(f"custom_data:       {PARAMETERS_KEY} ({what})")
     return "\n".join(lines)
-

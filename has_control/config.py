@@ -29,6 +29,7 @@ from .params import (
     X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Reference,
 )
 
+
 def _config_dir() -> Path:
     """The shipped ``config/``: the source tree's, or ``share/has_control/config``
     of an install prefix (pip or colcon) above the package."""

@@ -232,4 +232,3 @@ def stored_result(directory: str | Path) -> dict | None:
     bag = read_bag(Path(directory) / SESSION, topics=(RESULT,), on_warning=lambda m: None)
     msgs = bag.messages.get(RESULT) or []
     return json.loads(_unstring(msgs[-1][1])) if msgs else None
-
