@@ -1,0 +1,17 @@
+"""What the bag modules share: the error, warnings, the MCAP magic and our custom-data key."""
+from __future__ import annotations
+
+import sys
+
+from ..errors import HasControlError
+
+MAGIC = b"\x89MCAP0\r\n"
+PARAMETERS_KEY = "has_control/parameters"
+
+
+class BagError(HasControlError):
+    """A bag that cannot be read or lacks what we need (one line naming the file)."""
+
+
+def warn(message: str) -> None:
+    print(f"has-control: warning: {message}", file=sys.stderr)
