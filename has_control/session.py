@@ -29,8 +29,8 @@ from pathlib import Path
 from .bag import PARAMETERS_KEY, STRING, BagError, BagWriter, QosSpec, parameters_json, read_bag, warn, write_trace
 from .errors import HasControlError
 from .files import DirectoryLock
-from .swarm import Swarm, SwarmSettings, record_dict, record_from
-from .tuning import Tuning
+from .swarm import Swarm, record_dict, record_from
+from .tuning import Tuning, tuning_from_json, tuning_json
 
 SESSION = "session"
 SETTINGS, ITERATION, SWARM, RESULT = "/tuner/settings", "/tuner/iteration", "/tuner/swarm", "/tuner/result"
@@ -38,14 +38,6 @@ VALIDATION = "/validation"
 TUNING_KEY = "has_control/tuning"
 LOCK = ".lock"                      # DIR/.lock: flock'ed by the one process writing the session
 RESULT_FILE = "tune.json"           # written last: its presence says the session is finished
-
-
-def tuning_json(t: Tuning) -> dict:
-    return {"swarm": dataclasses.asdict(t.swarm), "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
-
-
-def tuning_from_json(d: dict) -> Tuning:
-    return Tuning(SwarmSettings(**d["swarm"]), tuple(d["lower"]), tuple(d["upper"]), int(d["seed"]))
 
 
 def _string(text: str) -> bytes:
@@ -225,10 +217,3 @@ def swarm_result(directory: str | Path):
     return SwarmResult(last.best_position, last.best_cost, len(history),
                        sum(len(h.costs) for h in history), "from the session bag",
                        math.isfinite(last.best_cost), 0, history)
-
-
-def stored_result(directory: str | Path) -> dict | None:
-    """The ``/tuner/result`` of a finished session, else None."""
-    bag = read_bag(Path(directory) / SESSION, topics=(RESULT,), on_warning=lambda m: None)
-    msgs = bag.messages.get(RESULT) or []
-    return json.loads(_unstring(msgs[-1][1])) if msgs else None

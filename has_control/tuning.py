@@ -102,6 +102,22 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
         raise ConfigError(f"{origin}: {msg}") from None
 
 
+def tuning_parameters(t: Tuning) -> dict[str, Any]:
+    """Flat ``swarm.*`` parameters of a Tuning (inverse of :func:`tuning_from_parameters`)."""
+    out = {f"swarm.{k}": v for k, v in dataclasses.asdict(t.swarm).items()}
+    out.update({"swarm.seed": t.seed, "swarm.lower": list(t.lower), "swarm.upper": list(t.upper)})
+    return out
+
+
+def tuning_json(t: Tuning) -> dict:
+    """A Tuning as JSON-ready data (a session bag's settings; inverse: :func:`tuning_from_json`)."""
+    return {"swarm": dataclasses.asdict(t.swarm), "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
+
+
+def tuning_from_json(d: dict) -> Tuning:
+    return Tuning(SwarmSettings(**d["swarm"]), tuple(d["lower"]), tuple(d["upper"]), int(d["seed"]))
+
+
 def load_tuning(paths: Iterable[str | Path] = (), defaults: bool = True) -> Tuning:
     """Tuning settings from config/tuner.yaml (if ``defaults``) and ``paths``."""
     files = ([TUNER_FILE] if defaults else []) + [Path(p) for p in paths]

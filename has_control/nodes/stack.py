@@ -264,7 +264,8 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
     config/tuner.yaml and ``config_files``.
     """
     from ..tuning import load_tuning
-    from .tuner_node import TunerNode, tuning_parameters
+    from ..tuning import tuning_parameters
+    from .tuner_node import TunerNode
     tuning = load_tuning(config_files).replace(**changes)
     namespaces = namespaces or [""]
     with borrowed_context(context, domain_id=domain_id) as context:

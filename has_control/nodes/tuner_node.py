@@ -35,7 +35,6 @@ import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -49,19 +48,12 @@ from std_srvs.srv import Trigger
 from ..bag import BagError, score_bag
 from ..errors import ConfigError, HasControlError
 from ..swarm import Swarm
-from ..tuning import Tuning, load_tuning, tune, tuning_from_parameters
+from ..tuning import Tuning, load_tuning, tune, tuning_from_parameters, tuning_parameters
 from .parameters import config_from_node, declare_config
 from .recorder import Recorder
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.")
 EVALUATORS = ("graph", "batch")
-
-
-def tuning_parameters(t: Tuning) -> dict:
-    """Flat ``swarm.*`` parameters of a Tuning (inverse of tuning_from_parameters)."""
-    out = {f"swarm.{k}": v for k, v in asdict(t.swarm).items()}
-    out.update({"swarm.seed": t.seed, "swarm.lower": list(t.lower), "swarm.upper": list(t.upper)})
-    return out
 
 
 def _wait(future, timeout: float, what: str):
