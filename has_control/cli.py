@@ -96,9 +96,8 @@ class StatusLine:
 class Progress(StatusLine):
     """A tuning run's progress bar on a terminal."""
 
-    def __init__(self, label: str, stream=None):
+    def __init__(self, stream=None):
         super().__init__(stream)
-        self.label = label
         self.t0 = None
 
     def __call__(self, swarm) -> None:
@@ -110,7 +109,7 @@ class Progress(StatusLine):
         rate = swarm.evaluations / max(now - self.t0, 1e-9)
         total = swarm.settings.iterations
         filled = int(30 * swarm.iteration / total)
-        self.show(f"{self.label} [{'#' * filled}{'.' * (30 - filled)}] "
+        self.show(f"{swarm.settings.variant} seed {swarm.seed} [{'#' * filled}{'.' * (30 - filled)}] "
                   f"{swarm.iteration}/{total}  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s")
 
 
@@ -127,41 +126,26 @@ def _tuning_args(args):
 
 
 def cmd_tune(args) -> int:
-    from .tuning import TuneResult, tune
-    session = swarm = stored = None
+    from .session import run_session
     if args.resume:
-        from .session import resume
         if args.out and Path(args.out) != Path(args.resume):
             raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")
-        r = resume(args.resume)
-        cfg, tuning, swarm, session, stored = r.cfg, r.tuning, r.swarm, r.session, r.result
-        args.out = args.resume
-        print(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}"
-              + (" (finished; writing its results)" if stored else ""), file=sys.stderr)
+        cfg = tuning = None
     else:
         cfg = _load(args)
         tuning = _tuning_args(args)
-        if args.out:
-            from .session import Session
-            session = Session(args.out, tuning, cfg, replace=args.force)
-    progress = Progress(f"{tuning.swarm.variant} seed {tuning.seed}")
+    progress = Progress()
 
-    def each_iteration(sw) -> None:
-        progress(sw)
-        if session is not None:
-            session.record(sw)
+    def artefacts(res, directory: Path) -> None:
+        from .plots import plot_convergence, plot_gains
+        plot_convergence([(res.variant, res.result)], directory / "convergence.png")
+        plot_gains(res.result, directory / "gains.png", f"{res.variant}, seed {res.seed}")
     try:
-        if stored is not None:
-            res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"])
-        else:
-            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm)
-        out = res.as_json()
-        if session is not None:
-            bag = _finish_session(session, res, out, cfg)
+        run = run_session(cfg, tuning, args.out, resume_dir=args.resume, replace=args.force, on_iteration=progress,
+                          artefacts=artefacts, announce=lambda m: print(m, file=sys.stderr))
     finally:
         progress.close()
-        if session is not None:
-            session.release()
+    res, out = run.result, run.out
     if args.json:
         print(json.dumps(out))
     else:
@@ -169,28 +153,10 @@ def cmd_tune(args) -> int:
         print(f"{res.variant}, seed {res.seed}: k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), "
               f"J = {res.result.fun:.6e} after {res.result.nit} iterations, "
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
-        if args.out:
-            print(f"wrote {Path(args.out) / 'tune.json'}, gains.yaml (a --params-file for the controller), "
-                  f"convergence.png, gains.png and the session bag {bag}")
+        if run.directory:
+            print(f"wrote {run.directory / 'tune.json'}, gains.yaml (a --params-file for the controller), "
+                  f"convergence.png, gains.png and the session bag {run.bag}")
     return 0
-
-
-def _finish_session(session, res, out: dict, cfg) -> Path:
-    """The session's result and validation run, its figures, and ``tune.json``
-    last (written then renamed: its presence says the session is finished)."""
-    from .config import write_gains_params
-    from .episode import simulate
-    from .files import write_atomic
-    from .plots import plot_convergence, plot_gains
-    from .session import RESULT_FILE
-    d = session.directory
-    bag = session.finish(out, simulate(cfg, res.gains), cfg)
-    plot_convergence([(res.variant, res.result)], d / "convergence.png")
-    plot_gains(res.result, d / "gains.png", f"{res.variant}, seed {res.seed}")
-    write_gains_params(d / "gains.yaml", res.gains, f"has-control tune: {res.variant}, seed {res.seed}, "
-                       f"J = {res.result.fun:.6e}; use with --ros-args --params-file")
-    write_atomic(d / RESULT_FILE, json.dumps(out, indent=1) + "\n")
-    return bag
 
 
 def cmd_reproduce(args) -> int:

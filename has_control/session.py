@@ -30,7 +30,7 @@ from .bag import PARAMETERS_KEY, STRING, BagError, BagWriter, QosSpec, parameter
 from .errors import HasControlError
 from .files import DirectoryLock
 from .swarm import Swarm, record_dict, record_from
-from .tuning import Tuning, tuning_from_json, tuning_json
+from .tuning import TuneResult, Tuning, tuning_from_json, tuning_json
 
 SESSION = "session"
 SETTINGS, ITERATION, SWARM, RESULT = "/tuner/settings", "/tuner/iteration", "/tuner/swarm", "/tuner/result"
@@ -217,3 +217,78 @@ def swarm_result(directory: str | Path):
     return SwarmResult(last.best_position, last.best_cost, len(history),
                        sum(len(h.costs) for h in history), "from the session bag",
                        math.isfinite(last.best_cost), 0, history)
+
+
+@dataclasses.dataclass
+class SessionRun:
+    """What a tuning session gave: the result, the keys of ``tune --json``,
+    the session bag (None without a directory) and its directory."""
+
+    result: TuneResult
+    out: dict
+    bag: Path | None
+    directory: Path | None
+
+
+def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, resume_dir: str | Path | None = None,
+                replace: bool = False, evaluator: str = "batch", make_objective=None, on_iteration=None,
+                record_validation=None, artefacts=None, announce=None, on_warning=warn) -> SessionRun:
+    """One tuning session, as both front ends run it (``has-control tune`` and the tuner node).
+
+    Opens the session in ``directory`` (or resumes the one in ``resume_dir``
+    at its last good iteration; ``cfg`` and ``tuning`` then come from it),
+    tunes with the objective ``make_objective(cfg)`` returns (called once the
+    session's cfg is known; None, or no factory: the batch evaluator),
+    recording every
+    iteration after ``on_iteration(swarm)``, and finishes the session: the
+    result and the validation run of the best gains under ``/validation``
+    (``record_validation(gains, writer, cfg)`` records it, e.g. through the
+    node graph; default: the in-process trace), ``artefacts(result, directory)``
+    (figures), ``gains.yaml`` (a ``--params-file``) and, last, ``tune.json``
+    (written then renamed: its presence says the session finished).
+    ``announce(message)`` hears what a resume found.
+    """
+    from .config import write_gains_params
+    from .files import write_atomic
+    from .tuning import tune
+    swarm = stored = session = None
+    if resume_dir is not None:
+        r = resume(resume_dir, on_warning)
+        cfg, tuning, swarm, session, stored = r.cfg, r.tuning, r.swarm, r.session, r.result
+        directory = resume_dir
+        if announce is not None:
+            announce(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}"
+                     + (" (finished; writing its results)" if stored else ""))
+    elif directory is not None:
+        session = Session(directory, tuning, cfg, evaluator, replace=replace)
+
+    def each_iteration(sw: Swarm) -> None:
+        if on_iteration is not None:
+            on_iteration(sw)
+        if session is not None:
+            session.record(sw)
+    try:
+        objective = make_objective(cfg) if make_objective is not None else None
+        if stored is not None:
+            res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"])
+        else:
+            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm, objective=objective)
+        out = res.as_json()
+        bag = None
+        if session is not None:
+            d = session.directory
+            if record_validation is not None:
+                record_validation(res.gains, session.writer, cfg)
+                bag = session.finish(out)
+            else:
+                from .episode import simulate
+                bag = session.finish(out, simulate(cfg, res.gains), cfg)
+            if artefacts is not None:
+                artefacts(res, d)
+            write_gains_params(d / "gains.yaml", res.gains, f"has_control tuning: {res.variant}, seed {res.seed}, "
+                               f"J = {res.result.fun:.6e}; use with --ros-args --params-file")
+            write_atomic(d / RESULT_FILE, json.dumps(out, indent=1) + "\n")
+    finally:
+        if session is not None:
+            session.release()
+    return SessionRun(res, out, bag, Path(directory) if directory is not None else None)

@@ -48,7 +48,7 @@ from std_srvs.srv import Trigger
 from ..bag import BagError, score_bag
 from ..errors import ConfigError, HasControlError
 from ..swarm import Swarm
-from ..tuning import Tuning, load_tuning, tune, tuning_from_parameters, tuning_parameters
+from ..tuning import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
 from .parameters import config_from_node, declare_config
 from .recorder import Recorder
 
@@ -201,29 +201,33 @@ class TunerNode(Node):
             time.sleep(0.01)
 
     def run_session(self) -> dict:
-        from ..session import Session, resume
+        """The session (the same runner as ``has-control tune``), candidates scored
+        by the batch evaluator or through the lanes, the best gains set on every
+        lane and (``validate_best``) validated through the graph."""
+        from ..session import run_session
         log = self.get_logger()
-        record = self.get_parameter("record").value
-        resume_dir = self.get_parameter("resume").value
+        record = self.get_parameter("record").value or None
+        resume_dir = self.get_parameter("resume").value or None
         timeout = float(self.get_parameter("episode_timeout").value)
-        cfg, tuning, swarm, session = self.cfg, self.tuning, None, None
-        if resume_dir:
-            r = resume(resume_dir)
-            cfg, tuning, swarm, session = r.cfg, r.tuning, r.swarm, r.session
-            record = resume_dir
-            log.info(f"resuming {session.path} at iteration {swarm.iteration}")
-        elif record:
-            session = Session(record, tuning, cfg, self.evaluator)
-        self.wait_for_lanes()
-        n = cfg.episode.samples
-        for lane in self.lanes:
-            reason = lane.set_parameters(lane.plant_params, [Parameter("samples", value=n)], lane.plant_name)
-            if reason:
-                raise HasControlError(f"{lane.plant_name} rejected samples = {n}: {reason}")
+        validate = bool(self.get_parameter("validate_best").value)
         scratch = Path(tempfile.mkdtemp(prefix="has_control_tuner_"))
-        episodes = Path(record) / "episodes" if record else scratch
         t0 = time.perf_counter()
         every = max(1, int(self.get_parameter("log_every").value))
+        used: dict = {}
+
+        def make_objective(cfg):
+            used["cfg"] = cfg
+            self.wait_for_lanes()
+            n = cfg.episode.samples
+            for lane in self.lanes:
+                reason = lane.set_parameters(lane.plant_params, [Parameter("samples", value=n)], lane.plant_name)
+                if reason:
+                    raise HasControlError(f"{lane.plant_name} rejected samples = {n}: {reason}")
+            if self.evaluator != "graph":
+                return None
+            directory = resume_dir or record
+            episodes = Path(directory) / "episodes" if directory else scratch
+            return self._graph_objective(cfg, episodes, timeout, keep=bool(directory))
 
         def on_iteration(sw: Swarm) -> None:
             k = sw.gbest_x
@@ -233,43 +237,33 @@ class TunerNode(Node):
             if sw.iteration % every == 0 or sw.done:
                 log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
                          f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")
-            if session is not None:
-                session.record(sw)
 
-        objective = None
-        if self.evaluator == "graph":
-            objective = self._graph_objective(cfg, episodes, timeout, keep=bool(record))
+        def record_validation(gains, writer, cfg) -> None:     # through the graph, into the session bag
+            self.lanes[0].run(gains, cfg, writer.path, timeout, writer=writer, prefix="/validation")
+
         try:
-            res = tune(cfg, tuning, callback=on_iteration, swarm=swarm, objective=objective)
-            best = res.gains
+            run = run_session(self.cfg, self.tuning, record, resume_dir=resume_dir, evaluator=self.evaluator,
+                              make_objective=make_objective, on_iteration=on_iteration,
+                              record_validation=record_validation if validate else None,
+                              announce=log.info, on_warning=log.warning)
+            res, out, best = run.result, dict(run.out), run.result.gains
             for lane in self.lanes:
                 reason = lane.set_gains(best)
                 if reason:
                     raise HasControlError(f"{lane.controller_name} rejected the best gains {best}: {reason}")
-            out = res.as_json()
             out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes])
-            validation = None
-            if self.get_parameter("validate_best").value:
-                lane = self.lanes[0]
-                if session is not None:
-                    lane.run(best, cfg, session.path, timeout, writer=session.writer, prefix="/validation")
-                    bag = session.finish(out)
-                    session = None
-                else:
+            if validate:
+                bag = run.bag
+                if bag is None:
                     bag = scratch / "validation"
-                    lane.run(best, cfg, bag, timeout)
+                    self.lanes[0].run(best, used["cfg"], bag, timeout)
                 validation, _ = score_bag(bag, on_warning=log.warning)
                 out["validation"] = validation.as_json()
-                out["validation_bag"] = str(bag) if record else None
+                out["validation_bag"] = str(bag) if run.bag else None
                 log.info(f"validated k = ({best[0]:.2f}, {best[1]:.2f}, {best[2]:.2f}) through the graph: "
                          f"J = {validation.J:.6e} (batch J = {res.result.fun:.6e})")
-            if session is not None:
-                session.finish(out)
-            if record:
-                from ..config import write_gains_params
-                out["gains_file"] = str(write_gains_params(
-                    Path(record) / "gains.yaml", best, f"has_control tuner: {out['variant']}, seed {out['seed']}, "
-                    f"J = {res.result.fun:.6e}; use with --ros-args --params-file"))
+            if run.directory:
+                out["gains_file"] = str(run.directory / "gains.yaml")
             out["controller_gains"] = self.lanes[0].gains()
             return out
         finally:
