@@ -351,15 +351,16 @@ def config_parameters(cfg: Config) -> dict[str, Any]:
     return out
 
 
-def parameter_kind(key: str) -> tuple[Any, tuple[float, bool] | None]:
+def parameter_kind(key: str) -> tuple[Any, tuple[float, bool] | None, float | None]:
     """What a config key takes, for parameter descriptors: its kind ("float",
-    "pair" or a dict of allowed strings) and its lower bound (value, inclusive)
-    if its check has one."""
+    "pair" or a dict of allowed strings), its lower bound (value, inclusive)
+    and its upper bound (inclusive), where its check has them."""
     _, _, kind, check = _SCHEMA[key]
-    bound = {_positive: (0.0, False), _non_negative: (0.0, True)}.get(check)
-    if bound is None and kind == "pair":
-        bound = {"gain": (0.0, True)}.get(key.rsplit(".", 1)[-1])
-    return kind, bound
+    lower, upper = {_positive: ((0.0, False), None), _non_negative: ((0.0, True), None),
+                    check_gain: ((0.0, False), GAIN_MAX)}.get(check, (None, None))
+    if lower is None and kind == "pair":
+        lower = {"gain": (0.0, True)}.get(key.rsplit(".", 1)[-1])
+    return kind, lower, upper
 
 
 def parameter_comments(files: Iterable[str | Path] | None = None) -> dict[str, str]:

@@ -37,3 +37,22 @@ def test_the_tuner_node_writes_the_params_file_too(tmp_path, domain_id):
     out = json.loads(r.stdout)
     params = yaml.safe_load((rec / "gains.yaml").read_text())["/**"]["ros__parameters"]["gains"]
     assert [params["k1"], params["k2"], params["k3"]] == out["gains"] and out["gains_file"] == str(rec / "gains.yaml")
+
+
+def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
+    from has_control.nodes.plant_node import PlantNode
+    controller, plant = ControllerNode(context=context), PlantNode(context=context)
+    try:
+        k1, kind, step = controller.describe_parameters(["gains.k1", "reference.kind", "simulation.step"])
+        assert "[1/s]" in k1.description and 0.0 < k1.floating_point_range[0].from_value < 1e-300
+        assert k1.floating_point_range[0].to_value == 1.0e6 and not k1.read_only
+        assert "sine" in kind.additional_constraints and "chirp" in kind.additional_constraints
+        assert step.read_only and "[s]" in step.description
+        mass, mode = plant.describe_parameters(["actuator.mass", "mode"])
+        assert mass.read_only and "[kg]" in mass.description
+        assert mode.read_only and "realtime" in mode.additional_constraints
+        from rclpy.parameter import Parameter
+        assert not controller.set_parameters([Parameter("gains.k1", value=0.0)])[0].successful
+    finally:
+        controller.destroy_node()
+        plant.destroy_node()

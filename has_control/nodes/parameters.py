@@ -29,7 +29,7 @@ def declare_config(node: Node, prefixes: tuple[str, ...], cfg: Config | None = N
 
 def describe(key: str, text: str, read_only: bool = False) -> ParameterDescriptor:
     """The descriptor of config key ``key`` with description ``text``."""
-    kind, bound = parameter_kind(key)
+    kind, bound, upper = parameter_kind(key)
     desc = ParameterDescriptor(description=text, read_only=read_only)
     if isinstance(kind, dict):
         desc.additional_constraints = f"one of: {', '.join(kind)}"
@@ -37,7 +37,8 @@ def describe(key: str, text: str, read_only: bool = False) -> ParameterDescripto
         lower, inclusive = bound
         if kind == "float":
             desc.floating_point_range = [FloatingPointRange(
-                from_value=lower if inclusive else sys.float_info.min, to_value=sys.float_info.max, step=0.0)]
+                from_value=lower if inclusive else sys.float_info.min,
+                to_value=sys.float_info.max if upper is None else upper, step=0.0)]
         else:
             desc.additional_constraints = f"each {'>=' if inclusive else '>'} {lower:g}"
     return desc
