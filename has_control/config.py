@@ -196,28 +196,81 @@ def load_yaml(text: str, where: str, error: type[Exception] = ConfigError, what:
         raise error(f"{where}: {what}: {' '.join(str(exc).split())[:120]}") from None
 
 
-def read_parameter_file(path: str | Path) -> dict[str, Any]:
-    """Flat parameters of every node section of one ``ros__parameters`` file.
+#: The nodes whose sections the library (one process, one model) reads from a params file.
+LIBRARY_NODES = ("/plant", "/controller", "/tuner")
 
-    Sections are merged in file order (``/**`` and node names alike); a file
-    without any ``ros__parameters`` section is an error. Only a regular UTF-8
-    file of at most :data:`MAX_CONFIG_BYTES` is read.
+
+def node_matches(pattern: str, node: str) -> bool:
+    """Does the params-file section ``pattern`` apply to the node with fully
+    qualified name ``node``, as rcl decides: ``/**`` matches every node, ``*``
+    one name token, ``**`` any number of them, and a name without a leading
+    ``/`` is a node in the root namespace."""
+    pat = [t for t in ("/" + pattern.lstrip("/")).split("/")[1:]]
+    name = node.strip("/").split("/") if node.strip("/") else []
+
+    def match(i: int, j: int) -> bool:
+        if i == len(pat):
+            return j == len(name)
+        if pat[i] == "**":
+            return any(match(i + 1, k) for k in range(j, len(name) + 1))
+        return j < len(name) and (pat[i] == "*" or pat[i] == name[j]) and match(i + 1, j + 1)
+    return match(0, 0)
+
+
+def read_parameter_file(path: str | Path, node: str | None = None) -> dict[str, Any]:
+    """Flat parameters of one ``ros__parameters`` file for ``node`` (its fully
+    qualified name), honouring section names as rcl does: a section applies
+    to the nodes it matches (:func:`node_matches`), in file order.
+
+    Without ``node`` (the library, which runs plant, controller and tuner in
+    one process with one model) the sections of any of :data:`LIBRARY_NODES`
+    apply, and a key that two of them set differently is refused naming
+    both. A file without any ``ros__parameters`` section is an error. Only a
+    regular UTF-8 file of at most :data:`MAX_CONFIG_BYTES` is read.
     """
     path = Path(path)
     doc = load_yaml(read_text(path, MAX_CONFIG_BYTES, ConfigError), str(path))
     if not isinstance(doc, Mapping):
         raise ConfigError(f"{path}: expected a mapping of node names to ros__parameters")
-    flat: dict[str, Any] = {}
-    for node, body in doc.items():
+    targets = (node,) if node else LIBRARY_NODES
+    per_node: dict[str, dict[str, Any]] = {t: {} for t in targets}
+    setter: dict[tuple[str, str], str] = {}
+    for section, body in doc.items():
         if not isinstance(body, Mapping) or "ros__parameters" not in body:
-            raise ConfigError(f"{path}: section '{node}' has no ros__parameters")
+            raise ConfigError(f"{path}: section '{section}' has no ros__parameters")
         params = body["ros__parameters"]
         if params is None:
             continue
         if not isinstance(params, Mapping):
-            raise ConfigError(f"{path}: {node}.ros__parameters is not a mapping")
-        flat.update(flatten(params))
-    return flat
+            raise ConfigError(f"{path}: {section}.ros__parameters is not a mapping")
+        flat = flatten(params)
+        for t in targets:
+            if node_matches(str(section), t):
+                per_node[t].update(flat)
+                setter.update({(t, k): str(section) for k in flat})
+    if node:
+        return per_node[node]
+    merged: dict[str, Any] = {}
+    for k in dict.fromkeys(k for t in targets for k in per_node[t]):
+        owners = [t for t in _owners(k) if k in per_node[t]] or [t for t in targets if k in per_node[t]]
+        first = owners[0]
+        for other in owners[1:]:
+            if per_node[other][k] != per_node[first][k]:
+                raise ConfigError(
+                    f"{path}: {k} = {shown(per_node[first][k])} for {first} (section {setter[(first, k)]}) but "
+                    f"{shown(per_node[other][k])} for {other} (section {setter[(other, k)]}): the library runs "
+                    "plant and controller on one model; give both the same value")
+        merged[k] = per_node[first][k]
+    return merged
+
+
+def _owners(key: str) -> tuple[str, ...]:
+    """The library nodes whose value of ``key`` the library takes (more than one: they must agree)."""
+    if key.startswith(("actuator.", "simulation.")):
+        return ("/plant", "/controller")
+    if key.startswith(("gains.", "adaptation.", "reference.")):
+        return ("/controller",)
+    return ("/tuner",)
 
 
 def read_parameter_files(files: Iterable[str | Path]) -> tuple[dict[str, Any], dict[str, str]]:

@@ -61,3 +61,26 @@ def test_later_files_override_earlier_ones_and_yaml_floats_read_like_ros(tmp_pat
     p = _write(tmp_path, "    actuator:\n      mass: 1.2e3\n    gains:\n      k1: 2e2\n")
     cfg = load_config([p])
     assert cfg.actuator.mass == 1200.0 and cfg.gains.k1 == 200.0
+
+
+def test_sections_apply_to_the_nodes_they_name_as_rcl_decides(tmp_path):
+    from has_control.config import load_config, node_matches, read_parameter_file
+    assert node_matches("/**", "/sim0/plant") and node_matches("controller", "/controller")
+    assert node_matches("/**/controller", "/sim0/controller") and not node_matches("/plant", "/controller")
+    assert not node_matches("/controller", "/sim0/controller") and node_matches("/sim0/*", "/sim0/plant")
+    p = tmp_path / "p.yaml"
+    p.write_text("/**:\n  ros__parameters:\n    gains: {k1: 150.0}\n    actuator: {mass: 1400.0}\n"
+                 "/controller:\n  ros__parameters:\n    gains: {k1: 400.0}\n"
+                 "/plant:\n  ros__parameters:\n    simulation: {y_limit: 0.5}\n"
+                 "/recorder:\n  ros__parameters:\n    gains: {k2: 1.0}\n")
+    assert read_parameter_file(p, "/plant") == {"gains.k1": 150.0, "actuator.mass": 1400.0,
+                                                "simulation.y_limit": 0.5}
+    assert read_parameter_file(p, "/controller") == {"gains.k1": 400.0, "actuator.mass": 1400.0}
+    cfg = load_config([p])                                  # the library: the controller's gains, one model
+    assert cfg.gains.k1 == 400.0 and cfg.gains.k2 == 158.0 and cfg.actuator.mass == 1400.0
+    assert cfg.episode.y_limit == 0.5
+    q = tmp_path / "q.yaml"
+    q.write_text("/plant:\n  ros__parameters:\n    actuator: {mass: 1000.0}\n"
+                 "/controller:\n  ros__parameters:\n    actuator: {mass: 1500.0}\n")
+    with pytest.raises(ConfigError, match=r"actuator.mass = 1000.0 for /plant .* 1500.0 for /controller"):
+        load_config([q])
