@@ -39,6 +39,13 @@ CONTROLLER_STATE_COLUMNS = ("t", "e1", "e2", "e3", "a1_hat", "a2_hat", "x1d")
 REFERENCE_COLUMNS = ("t", "x1d", "x1d_dot", "x1d_ddot", "x1d_dddot")
 GAINS_COLUMNS = ("t", "k1", "k2", "k3")
 
+#: What each run topic is offered with: (history depth, transient local). All
+#: are reliable. The loop's state and command keep the last one (lock-step
+#: must not lose a sample, and a stale one is never worth delivering); the
+#: gains in force are kept for late joiners.
+QOS = {STATE: (1, False), COMMAND: (1, False), CLOCK_TOPIC: (10, False),
+       REFERENCE: (10, False), CONTROLLER_STATE: (10, False), GAINS: (1, True)}
+
 #: Topics of a recorded run and their types.
 RUN_TOPICS = {STATE: JOINT_STATE, COMMAND: JOINT_STATE, CLOCK_TOPIC: CLOCK,
               REFERENCE: FLOAT64_ARRAY, CONTROLLER_STATE: FLOAT64_ARRAY, GAINS: FLOAT64_ARRAY}

@@ -38,11 +38,11 @@ from std_msgs.msg import Float64MultiArray
 from .. import loop
 from ..episode import TRACE_COLUMNS, EpisodeArrays
 from ..errors import ConfigError
-from ..topics import (COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, GAINS_LAYOUT, REFERENCE_LAYOUT, STATE,
-                      STATE_LAYOUT)
+from ..topics import (COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE, CONTROLLER_STATE_LAYOUT, GAINS, GAINS_LAYOUT,
+                      REFERENCE, REFERENCE_LAYOUT, STATE, STATE_LAYOUT)
 from ..wire import NOT_FINITE, get_stamp
 from .foxglove import node_tap
-from .messages import CONTROL_QOS, LATCHED_QOS, node_main, raw_publish, spin, trigger_service
+from .messages import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
 from .parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.")
@@ -68,9 +68,9 @@ class ControllerNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         self.command_pub = self.create_publisher(JointState, COMMAND, CONTROL_QOS)
-        self.internals_pub = self.create_publisher(Float64MultiArray, "~/controller_state", 10)
-        self.reference_pub = self.create_publisher(Float64MultiArray, "~/reference", 10)
-        self.gains_pub = self.create_publisher(Float64MultiArray, "~/gains", LATCHED_QOS)
+        self.internals_pub = self.create_publisher(Float64MultiArray, "~/controller_state", qos(CONTROLLER_STATE))
+        self.reference_pub = self.create_publisher(Float64MultiArray, "~/reference", qos(REFERENCE))
+        self.gains_pub = self.create_publisher(Float64MultiArray, "~/gains", qos(GAINS))
         self._publish_command = raw_publish(self.command_pub, tap)
         self._publish_internals = raw_publish(self.internals_pub, tap)
         self._publish_reference = raw_publish(self.reference_pub, tap)

@@ -13,18 +13,18 @@ from sensor_msgs.msg import JointState
 
 from ..actuator import joint_state
 from ..params import Actuator
-from ..topics import STATE_NAMES
+from ..topics import QOS, STATE, STATE_NAMES
 
-#: The control loop: reliable (lock-step must not lose a sample), keep last 1
-#: (a stale sample is never worth delivering), volatile (no late-joiner replay).
-CONTROL_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.VOLATILE)
 
-#: Slow state that a late joiner needs (the gains in force): the last one kept.
-LATCHED_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                         reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+def qos(relative: str) -> QoSProfile:
+    """The QoS a run topic is offered with (:data:`has_control.topics.QOS`)."""
+    depth, transient_local = QOS[relative]
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if transient_local else DurabilityPolicy.VOLATILE)
+
+
+#: The control loop's state and command (see :data:`has_control.topics.QOS`).
+CONTROL_QOS = qos(STATE)
 
 
 def stamp(sample: int, step_ns: int) -> Time:

@@ -61,7 +61,7 @@ from .. import loop
 from ..topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
 from ..wire import NOT_FINITE
 from .foxglove import node_tap
-from .messages import CONTROL_QOS, node_main, raw_publish, sample_of, trigger_service
+from .messages import CONTROL_QOS, node_main, qos, raw_publish, sample_of, trigger_service
 from .pacing import LoopStats, run_paced
 from .parameters import config_from_node, declare_config
 
@@ -113,7 +113,7 @@ class PlantNode(Node):
         self._warm_up()
         tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
-        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, 10)
+        self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos(CLOCK_TOPIC))
         self._publish_state = raw_publish(self.state_pub, tap)
         self._publish_clock = raw_publish(self.clock_pub, tap)
         self._command_sub = self.create_subscription(JointState, COMMAND, self._on_command, CONTROL_QOS, raw=True)

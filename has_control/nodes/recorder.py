@@ -33,14 +33,13 @@ from std_msgs.msg import Float64MultiArray
 
 from .. import cdr
 from ..bag import PARAMETERS_KEY, BagWriter, QosSpec, parameters_json
-from ..topics import (CLOCK, CLOCK_TOPIC, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, RUN_TOPICS, STATE,
+from ..topics import (CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, QOS, RUN_TOPICS, STATE,
                       STATE_LAYOUT)
 
 _CLASSES = {JOINT_STATE: JointState, CLOCK: Clock, FLOAT64_ARRAY: Float64MultiArray}
 
 #: What the publishers offer (stored in the bag as rosbag2 does).
-OFFERED = {STATE: QosSpec(depth=1), COMMAND: QosSpec(depth=1), CLOCK_TOPIC: QosSpec(depth=10),
-           GAINS: QosSpec(depth=1, transient_local=True)}
+OFFERED = {rel: QosSpec(depth=depth, transient_local=latched) for rel, (depth, latched) in QOS.items()}
 
 #: Messages of the state topic between two hand-overs to the writer thread.
 BATCH = 4096
