@@ -24,4 +24,4 @@ from ..topics import (  # noqa: F401  (re-exported: the bag code's vocabulary)
 from .base import MAGIC, PARAMETERS_KEY, BagError, warn  # noqa: F401
 from .read import Bag, describe, read_bag  # noqa: F401
 from .score import RecordedRun, recorded_run, score_bag  # noqa: F401
-from .write import BagWriter, QosSpec, msgdef, parameters_json, typestore, write_trace  # noqa: F401
+from .write import BagWriter, QosSpec, as_batch, msgdef, parameters_json, typestore, write_trace  # noqa: F401

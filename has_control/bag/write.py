@@ -4,6 +4,7 @@ typestore, ``metadata.yaml``), and a trace written as the graph's messages."""
 from __future__ import annotations
 
 import json
+import struct
 import threading
 from dataclasses import dataclass
 from functools import lru_cache
@@ -13,8 +14,8 @@ import numpy as np
 import yaml
 
 from .. import cdr
-from ..topics import (COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE, REFERENCE,
-                      STATE, STATE_NAMES)
+from ..topics import (CLOCK, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
+                      REFERENCE, STATE, STATE_NAMES)
 from .base import BagError
 
 #: The ROS release whose message definitions (and type hashes) the bags carry.
@@ -225,3 +226,28 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
     writer.write_batches({f"{prefix}/{rel}": ((stamps if len(msgs) == n else np.zeros(1, np.int64)) + log_offset_ns,
                                               msgs)
                           for rel, (_, msgs) in topics.items()})
+
+
+def as_batch(msgtype: str, datas: list[bytes]) -> tuple[np.ndarray, np.ndarray | list[bytes]]:
+    """(log times [ns], messages) of one topic's messages: simulation time from
+    each message's stamp, or the leading t of our arrays; messages of one size
+    become a (n, size) byte matrix, read column-wise without a loop per message."""
+    size = len(datas[0])
+    raw = b"".join(datas)
+    if len(raw) != size * len(datas):                    # mixed sizes: one by one
+        if msgtype in (JOINT_STATE, CLOCK):
+            return cdr.stamps_ns(datas), datas
+        return np.array([round(cdr.first_float64(d) * 1e9) for d in datas], dtype=np.int64), datas
+    matrix = np.frombuffer(raw, dtype=np.uint8).reshape(len(datas), size)
+    if msgtype in (JOINT_STATE, CLOCK):
+        sec = matrix[:, 4:8].copy().view("<i4").ravel().astype(np.int64)
+        nsec = matrix[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
+        return sec * 1_000_000_000 + nsec, matrix
+    try:
+        start, _, _ = cdr.float64_array_layout(datas[0])
+    except (cdr.CdrError, struct.error):
+        start = -1
+    if start < 0 or start + 8 > size:
+        return np.array([round(cdr.first_float64(d) * 1e9) for d in datas], dtype=np.int64), datas
+    t = matrix[:, start:start + 8].copy().view("<f8").ravel()
+    return np.rint(t * 1e9).astype(np.int64), matrix

@@ -25,14 +25,13 @@ import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from .. import cdr
-from ..bag import PARAMETERS_KEY, BagWriter, QosSpec, parameters_json
+from ..bag import PARAMETERS_KEY, BagWriter, QosSpec, as_batch, parameters_json
+from ..bag.process import BagProcess
 from ..topics import (CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, QOS, RUN_TOPICS, STATE,
                       STATE_LAYOUT)
 
@@ -58,41 +57,20 @@ def topic_name(namespace: str, relative: str) -> str:
     return f"{ns}/{relative}" if ns else f"/{relative}"
 
 
-def as_batch(msgtype: str, datas: list[bytes]) -> tuple[np.ndarray, np.ndarray | list[bytes]]:
-    """(log times [ns], messages) of one topic's messages: simulation time from
-    each message's stamp, or the leading t of our arrays; messages of one size
-    become a (n, size) byte matrix, read column-wise without a loop per message."""
-    size = len(datas[0])
-    raw = b"".join(datas)
-    if len(raw) != size * len(datas):                    # mixed sizes: one by one
-        if msgtype in (JOINT_STATE, CLOCK):
-            return cdr.stamps_ns(datas), datas
-        return np.array([round(cdr.first_float64(d) * 1e9) for d in datas], dtype=np.int64), datas
-    matrix = np.frombuffer(raw, dtype=np.uint8).reshape(len(datas), size)
-    if msgtype in (JOINT_STATE, CLOCK):
-        sec = matrix[:, 4:8].copy().view("<i4").ravel().astype(np.int64)
-        nsec = matrix[:, 8:12].copy().view("<u4").ravel().astype(np.int64)
-        return sec * 1_000_000_000 + nsec, matrix
-    try:
-        start, _, _ = cdr.float64_array_layout(datas[0])
-    except (cdr.CdrError, struct.error):
-        start = -1
-    if start < 0 or start + 8 > size:
-        return np.array([round(cdr.first_float64(d) * 1e9) for d in datas], dtype=np.int64), datas
-    t = matrix[:, start:start + 8].copy().view("<f8").ravel()
-    return np.rint(t * 1e9).astype(np.int64), matrix
-
-
 class Recorder:
     """Records the run topics of ``namespace``; subscribes on ``node`` unless ``subscribe`` is False."""
 
     def __init__(self, node=None, namespace: str = "", topics: dict[str, str] | None = None,
-                 y_limit: float = math.inf, subscribe: bool = True):
+                 y_limit: float = math.inf, subscribe: bool = True, process: bool = False):
+        """``process``: a bag this recorder opens is written by a process of its
+        own (:class:`~has_control.bag.process.BagProcess`), so that writing
+        takes no GIL from a busy loop; else by a thread."""
         self.namespace = namespace
         self.topics = {topic_name(namespace, rel): (rel, ty) for rel, ty in (topics or RUN_TOPICS).items()}
         self._state = topic_name(namespace, STATE)
         self._command = topic_name(namespace, COMMAND)
-        self.writer: BagWriter | None = None
+        self.writer: BagWriter | BagProcess | None = None
+        self.process = process
         self.prefix = ""
         self.written: dict[str, int] = {t: 0 for t in self.topics}
         self.pending: dict[str, list[bytes]] = {t: [] for t in self.topics}
@@ -153,7 +131,11 @@ class Recorder:
                 batch[t] = m[:]
                 self.written[t] += len(m)
                 m.clear()
-        if batch:
+        if not batch:
+            return
+        if isinstance(self.writer, BagProcess):     # copied through a pipe; the child builds the records
+            self.writer.write_messages({self.prefix + t: (self.topics[t][1], m) for t, m in batch.items()})
+        else:
             self._writes.append(self._pool.submit(_write, self.writer, batch, self.topics, self.prefix))
 
     def connected(self) -> bool:
@@ -164,7 +146,7 @@ class Recorder:
              writer: BagWriter | None = None, prefix: str = "") -> BagWriter:
         """Start writing to a new bag at ``path`` (or into ``writer`` under ``prefix``)."""
         custom = {PARAMETERS_KEY: parameters_json(cfg)} if cfg is not None else {}
-        w = writer or BagWriter(path, custom)
+        w = writer or (BagProcess(path, custom) if self.process else BagWriter(path, custom))
         for full, (rel, ty) in self.topics.items():
             w.add_topic(prefix + full, ty, OFFERED.get(rel, QosSpec(depth=10)))
         with self._lock:
@@ -182,7 +164,7 @@ class Recorder:
         t = topic_name(self.namespace, relative)
         return self.written[t] + len(self.pending[t])
 
-    def detach(self) -> BagWriter | None:
+    def detach(self) -> BagWriter | BagProcess | None:
         """Stop taking messages; everything taken is written. Returns the writer (still open)."""
         with self._lock:
             self._hand_over()

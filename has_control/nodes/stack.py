@@ -91,7 +91,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         recorder = None
         if record is not None:
             from .recorder import Recorder
-            recorder = Recorder(namespace=namespace, subscribe=False)
+            recorder = Recorder(namespace=namespace, subscribe=False, process=True)
             recorder.open(record, cfg)
         tap = tee(recorder and recorder.sink, live and live.sink)
         plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
