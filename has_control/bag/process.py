@@ -30,7 +30,7 @@ class BagProcess:
             raise BagError(f"{self.path}: exists already; a bag is never overwritten")
         ctx = multiprocessing.get_context("fork")
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_serve, args=(child, self.path, custom_data or {}),
+        self._proc = ctx.Process(target=_serve, args=(child, self._conn, self.path, custom_data or {}),
                                  name="bag-writer", daemon=True)
         self._proc.start()
         child.close()
@@ -65,8 +65,9 @@ class BagProcess:
             raise BagError(text)
 
 
-def _serve(conn, path: Path, custom_data: dict[str, str]) -> None:
+def _serve(conn, parents_end, path: Path, custom_data: dict[str, str]) -> None:
     """The child: open the bag, write what arrives, close on request or end-of-file."""
+    parents_end.close()                              # so that the parent's death is our end-of-file
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:
