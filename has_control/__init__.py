@@ -41,27 +41,33 @@ def _load_compiled_modules() -> None:
 
 
 def _exit_quietly_on_interrupt(signum, frame):
-    import sys
-    print("has-control: interrupted", file=sys.stderr)
-    raise SystemExit(130)
+    """Leave at once: an exception raised inside a C extension's import (numpy,
+    numba) would be turned into an ImportError with a traceback."""
+    os.write(2, b"has-control: interrupted\n")
+    os._exit(130)
 
 
-def _load_quietly() -> None:
-    """:func:`_load_compiled_modules`, with Ctrl-C during it (the first second
-    of every command, before ``cli.main`` can catch anything) ending the
-    process with one line and status 130 instead of a traceback. Only when
-    Python's own SIGINT handler is in place (main thread, nobody else's)."""
-    import signal
-    import threading
-    ours = (threading.current_thread() is threading.main_thread()
-            and signal.getsignal(signal.SIGINT) is signal.default_int_handler)
-    if ours:
-        signal.signal(signal.SIGINT, _exit_quietly_on_interrupt)
-    try:
-        _load_compiled_modules()
-    finally:
-        if ours:
+class quiet_interrupts:
+    """A context in which Ctrl-C ends the process at once with one line and
+    status 130: for loading code (imports, numba's cache), where a
+    KeyboardInterrupt would surface as an ImportError or an "Exception
+    ignored" from a ctypes callback instead. Only when Python's own SIGINT
+    handler is in place (main thread, nobody else's); restored on exit."""
+
+    def __enter__(self):
+        import signal
+        import threading
+        self.ours = (threading.current_thread() is threading.main_thread()
+                     and signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+        if self.ours:
+            signal.signal(signal.SIGINT, _exit_quietly_on_interrupt)
+        return self
+
+    def __exit__(self, *exc):
+        if self.ours:
+            import signal
             signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-_load_quietly()
+with quiet_interrupts():        # the first second of every command, before cli.main can catch anything
+    _load_compiled_modules()

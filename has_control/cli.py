@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import re
 import sys
 from pathlib import Path
@@ -175,7 +176,9 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_stack(args) -> int:
-    from .nodes.stack import run_stack
+    from . import quiet_interrupts
+    with quiet_interrupts():                  # rclpy and the nodes' kernels load here
+        from .nodes.stack import run_stack
     cfg = _load(args)
     gains = _gains_arg(args.gains) if args.gains else None
     if args.tune:
@@ -429,7 +432,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    """The program (``argv`` None: the command line); the exit status."""
+    if argv is None:
+        try:
+            status = main(sys.argv[1:])
+        finally:
+            _ignore_interrupts()
+        if status == EXIT_INTERRUPTED:        # what is left to run is the shutdown: end with the status
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(status)
+        return status
+    argv = list(argv)
     try:
         if argv and argv[0] in NODES:
             return run_node(argv[0], argv[1:])
@@ -447,6 +461,19 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("has-control: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def _ignore_interrupts() -> None:
+    """Once the program's status is decided, a Ctrl-C during the interpreter's
+    shutdown (numba, rclpy and matplotlib take a while) changes nothing: the
+    shutdown restores the default SIGINT action, which would end the process
+    silently by the signal instead of with that status. An interrupted
+    program leaves without the shutdown (os._exit), which after a
+    KeyboardInterrupt in rclpy's care would otherwise re-raise SIGINT."""
+    import signal
+    import threading
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _os_error_line(exc: OSError) -> str:

@@ -125,5 +125,5 @@ def test_ctrl_c_in_the_first_second_is_one_line_and_130():
         time.sleep(0.4)
         p.send_signal(signal.SIGINT)
         _, err = p.communicate(timeout=60)
-        assert p.returncode == 130 and "Traceback" not in err, err
+        assert p.returncode == 130 and "Traceback" not in err, (args[0], err)
         assert err.strip().splitlines() == ["has-control: interrupted"], err
