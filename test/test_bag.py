@@ -273,3 +273,14 @@ def test_replay_publishes_clock_that_use_sim_time_nodes_follow(recorded, domain_
 def test_score_bag_raises_bag_error_for_missing_path(tmp_path):
     with pytest.raises(BagError, match="no such bag"):
         score_bag(tmp_path / "none")
+
+
+def test_an_edited_or_damaged_metadata_yaml_is_never_used_silently(recorded, tmp_path):
+    d, _, _ = recorded
+    edited = _with_parameters(d, tmp_path / "edited", gains__k1=151.0)
+    said = []
+    read_bag(edited, on_warning=said.append)
+    assert any("differs from the copy inside the MCAP file" in m and "has_control/parameters" in m for m in said)
+    said.clear()
+    read_bag(d, on_warning=said.append)
+    assert said == []

@@ -337,17 +337,22 @@ def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
 
 
 def _custom_from_serialized(text: str, bag: Bag, f: Path) -> None:
-    """custom_data of the MCAP file's rosbag2 Metadata record, if metadata.yaml
-    gave none (metadata.yaml's wins: it may be edited on purpose)."""
+    """custom_data of the MCAP file's rosbag2 Metadata record (inside the
+    CRC-checked data), if metadata.yaml gave none. metadata.yaml's wins (it may
+    be edited on purpose), but never silently: a difference is warned about."""
     from ..config import load_yaml
-    if bag.custom_data:
-        return
     try:
         doc = load_yaml(text, f"{f} (rosbag2 metadata)", BagError)
         info = doc.get("rosbag2_bagfile_information", doc)     # rosbag2 stores the inner mapping
-        bag.custom_data.update({str(k): str(v) for k, v in (info.get("custom_data") or {}).items()})
+        stored = {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
     except (BagError, AttributeError):
-        pass
+        return
+    if not bag.custom_data:
+        bag.custom_data.update(stored)
+    elif stored and stored != bag.custom_data:
+        keys = sorted(k for k in set(stored) | set(bag.custom_data) if stored.get(k) != bag.custom_data.get(k))
+        bag.on_warning(f"{f}: metadata.yaml's custom_data ({', '.join(keys)}) differs from the copy inside the "
+                       "MCAP file; using metadata.yaml's (edited, or damaged: it carries no CRC)")
 
 
 def describe(bag: Bag) -> str:
