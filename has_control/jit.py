@@ -6,12 +6,9 @@ law, cost, plant, ``sample_step``). ``forceinline`` gives them LLVM's
 every compiled caller, so a whole sample step is optimised as one function
 (without it LLVM leaves ``abc_law`` and ``rk4_step`` as calls, and the lane
 loop of the batch kernel cannot be vectorised). numba's own ``inline="always"``
-gave the same bits and the same speed (29-30 ns per sample per core) but
-copies and re-types the callee's IR at every call site, for each kernel:
-measured alternately on empty caches, a cold
-``simulate --duration 2`` took 3.0 s with it and 2.6-2.8 s with ``forceinline``,
-and a ``tune`` right after it 3.8 s against 1.5 s, since the callees compiled
-for ``simulate`` are cached and serve the batch kernel too (README).
+gives the same bits and speed but copies and re-types the callee's IR at every
+call site, for each kernel, so it compiles slower; with ``forceinline`` the
+callees compiled for ``simulate`` are cached and serve the batch kernel too.
 Inlining reorders nothing: IEEE arithmetic without fast-math gives the same
 bits either way, and tests prove the batch kernel equal to the
 single-episode one. They stay callable from Python.
@@ -19,8 +16,8 @@ single-episode one. They stay callable from Python.
 ``LEAF`` marks the smallest of them (chamber volumes, valve drops and flows,
 projection, cost and metric updates, divergence test): numba's own
 ``inline="always"`` copies their few lines into each caller, which costs less
-than compiling each as a function of its own; cold ``simulate`` 2.7 -> 2.3 s,
-cold ``tune`` 3.2 -> 2.8 s (alternating, empty caches).
+than compiling each as a function of its own. The start-up figures behind
+these choices are in ``docs/speed.md`` (Start-up).
 
 ``KERNEL`` marks the entry points called from Python (episode, batch, scoring).
 """

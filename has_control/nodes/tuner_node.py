@@ -38,7 +38,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -296,25 +295,13 @@ class TunerNode(Node):
 
 
 def main(args=None):
-    import sys
-    rclpy.init(args=args)
-    try:
-        node = TunerNode()
-    except HasControlError as exc:
-        print(f"tuner: error: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        sys.exit(2)
-    from rclpy.executors import MultiThreadedExecutor
-    executor = MultiThreadedExecutor()
-    executor.add_node(node)
-    node.start()
-    try:
-        while rclpy.ok() and not node.done.is_set():
-            executor.spin_once(timeout_sec=0.1)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    if node.error:
-        sys.exit(2)
+    from .messages import node_main, spin
+    failed = []
+
+    def serve(executor, node: TunerNode) -> None:
+        node.start()
+        spin(executor, done=node.done.is_set)
+        failed.append(bool(node.error))
+    node_main(args, TunerNode, serve)
+    if any(failed):
+        raise SystemExit(2)
