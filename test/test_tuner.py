@@ -107,3 +107,35 @@ def test_bad_tuner_parameter_is_rejected_with_one_line(domain_id):
                        capture_output=True, text=True, timeout=120,
                        env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
     assert r.returncode == 2 and "evaluator = 'fast'" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_graph_lanes_in_separate_processes_equal_the_batch_evaluator(domain_id, tmp_path):
+    """Two plant and two controller processes in /sim0 and /sim1 (as ros2 run starts
+    them), the tuner a process of its own: the session gives the batch result."""
+    import json
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    cli_ = [sys.executable, "-m", "has_control.cli"]
+    procs = []
+    try:
+        for ns in ("/sim0", "/sim1"):
+            procs.append(subprocess.Popen(cli_ + ["plant", "--ros-args", "-r", f"__ns:={ns}", "-p", "autostart:=false",
+                                                  "-p", "keep_alive:=true"], env=env,
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            procs.append(subprocess.Popen(cli_ + ["controller", "--ros-args", "-r", f"__ns:={ns}"], env=env,
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        rec = tmp_path / "rec"
+        r = subprocess.run(cli_ + ["tuner", "--ros-args", "-p", "evaluator:=graph", "-p", "lanes:=['/sim0','/sim1']",
+                                   "-p", "swarm.iterations:=2", "-p", "swarm.particles:=3",
+                                   "-p", "simulation.horizon:=1.5", "-p", f"record:={rec}"],
+                           env=env, capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr[-2000:]
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(timeout=30)
+    out = json.loads((rec / "tune.json").read_text())
+    ref = tune(with_horizon(Config(), 1.5), load_tuning().replace(iterations=2, particles=3))
+    assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun
+    assert out["history"] == [h.best_cost for h in ref.result.history]
+    assert len(list((rec / "episodes").iterdir())) == 6                 # every candidate ran through a lane
