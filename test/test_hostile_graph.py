@@ -130,3 +130,20 @@ def test_a_signal_during_a_recorded_stack_leaves_a_clean_bag(tmp_path, signame, 
     assert b.complete and (bag / "metadata.yaml").exists()
     n = b.count("/state")
     assert n > 1000 and b.count("/command") in (n - 1, n)  # every sample taken before the signal
+
+
+def test_a_command_of_another_layout_is_read_by_name_only_on_the_sample_grid(context):
+    """A valve JointState with a frame_id and extra joints is still a command; off the grid it is refused."""
+    from rclpy.serialization import serialize_message
+    plant = PlantNode(context=context)
+    try:
+        other = JointState(name=["spool_temperature", "valve"], position=[300.0, 2e-5])
+        other.header.frame_id = "base"
+        other.header.stamp.nanosec = 600_000                  # sample 2
+        plant._on_command(serialize_message(other))
+        assert (plant.command_sample, plant.command_u, plant.malformed_commands) == (2, 2e-5, 0)
+        other.header.stamp.nanosec = 750_000                  # between samples 2 and 3
+        plant._on_command(serialize_message(other))
+        assert plant.command_sample == 2 and plant.malformed_commands == 1
+    finally:
+        plant.destroy_node()

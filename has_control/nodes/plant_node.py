@@ -48,6 +48,7 @@ serving ``~/start`` after an episode instead of exiting), ``foxglove_port``
 """
 from __future__ import annotations
 
+import math
 import time
 
 import rclpy
@@ -61,7 +62,7 @@ from .. import loop
 from ..topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
 from ..wire import NOT_FINITE
 from .foxglove import node_tap
-from .messages import CONTROL_QOS, node_main, qos, raw_publish, sample_of, trigger_service
+from .messages import CONTROL_QOS, node_main, qos, raw_publish, trigger_service
 from .pacing import LoopStats, run_paced
 from .parameters import config_from_node, declare_config
 
@@ -271,10 +272,11 @@ class PlantNode(Node):
                 from rclpy.serialization import deserialize_message
                 msg = deserialize_message(data, JointState)
                 u = float(msg.position[list(msg.name).index(COMMAND_NAMES[0])])
-                i = sample_of(msg.header.stamp, self.step_ns)
-                if u == u and abs(u) != float("inf") and i >= 0:
-                    return i, u
-                status = NOT_FINITE
+                ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+                if ns >= 0 and ns % self.step_ns == 0:              # on the sample grid, as the fast path asks
+                    if math.isfinite(u):
+                        return ns // self.step_ns, u
+                    status = NOT_FINITE
             except Exception:                        # noqa: BLE001 - any undecodable bytes
                 pass
         self.malformed_commands += 1
