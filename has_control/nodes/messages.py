@@ -114,6 +114,7 @@ def node_main(args, make_node, serve) -> None:
 
     A bad parameter at start-up ends in one line naming it and exit status 2;
     Ctrl-C and SIGTERM end the node cleanly."""
+    import gc
     import sys
 
     import rclpy
@@ -132,6 +133,7 @@ def node_main(args, make_node, serve) -> None:
                 raise SystemExit(2) from None
             executor = EventsExecutor()
             executor.add_node(node)
+            gc.freeze()                    # start-up's objects out of the collector's way of the loop
             serve(executor, node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -30,6 +30,7 @@ kept in a 1 µs histogram (bounded memory, exact percentiles to 1 µs).
 """
 from __future__ import annotations
 
+import gc
 import os
 import time
 from dataclasses import dataclass, field
@@ -106,6 +107,8 @@ def run_paced(executor, plant, *, priority: int = 0,
     """
     period = plant.step_ns
     stats = LoopStats(period)
+    collecting = gc.isenabled()
+    gc.disable()                                         # no collector pause inside a sample
     before = set_realtime_priority(priority)
     if priority > 0 and before is None:
         plant.get_logger().warning(f"realtime_priority {priority}: SCHED_FIFO not permitted; "
@@ -175,4 +178,6 @@ def run_paced(executor, plant, *, priority: int = 0,
                 on_second(stats)
     finally:
         restore_priority(before)
+        if collecting:
+            gc.enable()
     return stats
