@@ -74,7 +74,7 @@ def test_a_second_controller_on_the_command_topic_fails_the_run_loudly(domain_id
         probe.destroy_node()
         rclpy.try_shutdown(context=probe_ctx)
         with pytest.raises(HasControlError, match="another node publishes on this loop's topics"):
-            run_stack(Config(), domain_id=domain_id)       # 10 s: long enough to be discovered mid-run
+            run_stack(with_horizon(Config(), 120.0), domain_id=domain_id)   # long enough to meet it; ends at it
     finally:
         other.kill()
         other.wait()

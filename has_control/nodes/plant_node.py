@@ -126,6 +126,7 @@ class PlantNode(Node):
         self.failsafe_events = 0                  # samples run with the valve centred
         self.malformed_commands = 0
         self.conflicts = 0                        # samples answered twice, differently
+        self.stop_on_conflict = False             # end the episode at the first one (stack does)
         self.started_at = self.run_seconds = 0.0
         self._in_outage = False
         self.log: list[tuple[int, float, float, float, float, float]] | None = None
@@ -289,6 +290,8 @@ class PlantNode(Node):
         """Another controller answers on our command topic: the run's numbers are no
         longer this loop's. Counted (``conflicts``) and logged; ``stack`` fails on it."""
         self.conflicts += 1
+        if self.stop_on_conflict:
+            self.finished = True
         self.get_logger().error(
             f"{what}: {self.count_publishers(self._command_topic)} publishers on {self._command_topic}; "
             f"{self.conflicts} conflicting commands so far", throttle_duration_sec=5.0)

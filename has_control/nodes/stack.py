@@ -111,17 +111,25 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         gc.collect()
         gc.disable()
         interrupted = []
+        plant.stop_on_conflict = True            # a run with a stranger in it is over: fail it now
+
+        def stop_if_conflicts() -> None:
+            if controller.conflicts:
+                plant.finished = True
         try:
             _stop_on_signals(plant, interrupted)
             started = time.perf_counter()
             plant.start()
             if realtime:
-                stats = plant.run_realtime(executor, on_second=progress and (
-                    lambda st: progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))))
+                def each_second(st) -> None:
+                    stop_if_conflicts()
+                    if progress is not None:
+                        progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))
+                stats = plant.run_realtime(executor, on_second=each_second)
                 paced, missed_at = stats.as_dict(), stats.missed_at
             else:
                 paced, missed_at = None, []
-                _spin_lockstep(executor, plant, n, timeout, progress)
+                _spin_lockstep(executor, plant, n, timeout, progress, stop_if_conflicts)
             loop_seconds = time.perf_counter() - started
         finally:
             gc.enable()
@@ -220,8 +228,9 @@ def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndar
     return trace
 
 
-def _spin_lockstep(executor, plant, samples: int, timeout: float, progress) -> None:
-    """Serve the lock-step chain of callbacks until the plant's episode ends."""
+def _spin_lockstep(executor, plant, samples: int, timeout: float, progress, check) -> None:
+    """Serve the lock-step chain of callbacks until the plant's episode ends
+    (``check()`` every 256 events, e.g. to end it early)."""
     deadline = time.monotonic() + timeout
     report = time.monotonic() + 1.0
     last = (time.perf_counter(), 0)
@@ -231,6 +240,7 @@ def _spin_lockstep(executor, plant, samples: int, timeout: float, progress) -> N
             spin_once(timeout_sec=0.1)
             if plant.finished:
                 break
+        check()
         now = time.monotonic()
         if now > deadline:
             break
