@@ -10,8 +10,12 @@ them, from two intakes:
   with the bytes they publish (``has-control stack --record``): no executor
   event, callback or lock per message, a list append.
 
-Messages are kept per topic and written in batches (:meth:`BagWriter.write_batches`)
-on a writer thread, so the loop pays a list append per message. Log time is
+Messages are kept per topic and handed over in batches of :data:`BATCH`
+samples: to a process of its own that writes the bag
+(:class:`~has_control.bag.process.BagProcess`, ``process=True``, what
+``stack`` uses) or to a writer thread (:meth:`BagWriter.write_batches`; the
+tuner, whose episodes share its session bag), so the loop pays a list append
+per message. Log time is
 simulation time: the header stamp of JointState and Clock, and the leading t
 of our Float64MultiArray topics. A lock-step bag holds exactly one state and
 one command per sample. :meth:`open` / :meth:`close` let a tuner record
@@ -40,7 +44,7 @@ _CLASSES = {JOINT_STATE: JointState, CLOCK: Clock, FLOAT64_ARRAY: Float64MultiAr
 #: What the publishers offer (stored in the bag as rosbag2 does).
 OFFERED = {rel: QosSpec(depth=depth, transient_local=latched) for rel, (depth, latched) in QOS.items()}
 
-#: Messages of the state topic between two hand-overs to the writer thread.
+#: Messages of the state topic between two hand-overs to the writer.
 BATCH = 4096
 
 _Y = int(STATE_LAYOUT.values[0])          # byte offset of position[0] = y in a state message
@@ -122,7 +126,7 @@ class Recorder:
         return take
 
     def _hand_over(self) -> None:
-        """Give what is pending to the writer thread."""
+        """Give what is pending to the writer (process or thread)."""
         if self.writer is None:
             return
         batch = {}

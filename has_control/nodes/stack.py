@@ -88,55 +88,65 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         t0 = time.perf_counter()
         params = _overrides(cfg)
         n = cfg.episode.samples
-        recorder = None
-        if record is not None:
-            from .recorder import Recorder
-            recorder = Recorder(namespace=namespace, subscribe=False, process=True)
-            recorder.open(record, cfg)
-        tap = tee(recorder and recorder.sink, live and live.sink)
-        plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
-            params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
-                       Parameter("mode", value="realtime" if realtime else "lockstep")])
-        internals = publish_internals or record is not None
-        controller = ControllerNode(namespace=namespace, context=context, tap=tap,
-                                    parameter_overrides=params + [Parameter("publish_internals", value=internals)])
-        controller.record_trace(n)
-        if realtime:
-            plant.log = []                     # the command each sample ran with (held ones included)
-        executor = EventsExecutor(context=context)
-        nodes = [plant, controller]
-        for node in nodes:
-            executor.add_node(node)
-        _wait_for_match(executor, plant, controller)
-        gc.collect()
-        gc.disable()
-        interrupted = []
-        plant.stop_on_conflict = True            # a run with a stranger in it is over: fail it now
-
-        def stop_if_conflicts() -> None:
-            if controller.conflicts:
-                plant.finished = True
+        recorder = executor = None
+        nodes: list = []
+        interrupted: list = []
         try:
-            _stop_on_signals(plant, interrupted)
-            started = time.perf_counter()
-            plant.start()
+            if record is not None:
+                from .recorder import Recorder
+                recorder = Recorder(namespace=namespace, subscribe=False, process=True)
+                recorder.open(record, cfg)
+            tap = tee(recorder and recorder.sink, live and live.sink)
+            plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
+                params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
+                           Parameter("mode", value="realtime" if realtime else "lockstep")])
+            nodes.append(plant)
+            internals = publish_internals or record is not None
+            controller = ControllerNode(namespace=namespace, context=context, tap=tap, parameter_overrides=params + [
+                Parameter("publish_internals", value=internals)])
+            nodes.append(controller)
+            controller.record_trace(n)
             if realtime:
-                def each_second(st) -> None:
-                    stop_if_conflicts()
-                    if progress is not None:
-                        progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))
-                stats = plant.run_realtime(executor, on_second=each_second)
-                paced, missed_at = stats.as_dict(), stats.missed_at
-            else:
-                paced, missed_at = None, []
-                _spin_lockstep(executor, plant, n, timeout, progress, stop_if_conflicts)
-            loop_seconds = time.perf_counter() - started
-        finally:
-            gc.enable()
-            _stop_on_signals(None, None)
+                plant.log = []                 # the command each sample ran with (held ones included)
+            executor = EventsExecutor(context=context)
+            for node in nodes:
+                executor.add_node(node)
+            _wait_for_match(executor, plant, controller)
+            plant.stop_on_conflict = True        # a run with a stranger in it is over: fail it now
+
+            def stop_if_conflicts() -> None:
+                if controller.conflicts:
+                    plant.finished = True
+            gc.collect()
+            gc.disable()
+            try:
+                _stop_on_signals(plant, interrupted)
+                started = time.perf_counter()
+                plant.start()
+                if realtime:
+                    def each_second(st) -> None:
+                        stop_if_conflicts()
+                        if progress is not None:
+                            progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))
+                    stats = plant.run_realtime(executor, on_second=each_second)
+                    paced, missed_at = stats.as_dict(), stats.missed_at
+                else:
+                    paced, missed_at = None, []
+                    _spin_lockstep(executor, plant, n, timeout, progress, stop_if_conflicts)
+                loop_seconds = time.perf_counter() - started
+            finally:
+                gc.enable()
+                _stop_on_signals(None, None)
+        finally:                                 # a clean bag and no nodes left, whatever happened
             closing = time.perf_counter()
-            bag = recorder.close() if recorder is not None else None    # a clean bag, also after Ctrl-C
+            bag = recorder.close() if recorder is not None else None
             close_seconds = time.perf_counter() - closing
+            if executor is not None:
+                executor.shutdown()
+            for node in nodes:
+                node.destroy_node()
+        if interrupted:
+            raise KeyboardInterrupt              # after the bag is closed: the caller says "interrupted"
         if realtime:
             trace = _plant_trace(plant.log, controller.trace, cfg)
             diverged = plant.diverged or len(trace) < n
@@ -145,18 +155,10 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             trace = controller.trace[:answered].copy()
             diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
         score = score_arrays(trace[:, 7], trace[:, 6], cfg.episode.as_array(), diverged=diverged)
-        if interrupted:
-            executor.shutdown()
-            for node in nodes:
-                node.destroy_node()
-            raise KeyboardInterrupt          # after the bag is closed: the caller says "interrupted"
         conflicts = (plant.conflicts, controller.conflicts)
         figures = loop_figures(plant.sample, loop_seconds, cfg.episode.step, plant.failsafe_events, paced)
         run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at,
                        close_seconds)
-        executor.shutdown()
-        for node in nodes:
-            node.destroy_node()
         if any(conflicts):
             from ..errors import HasControlError
             raise HasControlError(
