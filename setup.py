@@ -21,7 +21,8 @@ setup(
     description="Adaptive back-stepping control of a hydraulic suspension actuator, tuned by PSO.",
     license="Apache-2.0",
     extras_require={"test": ["pytest", "scipy", "mcap", "mcap-ros2-support", "foxglove-sdk", "websockets"],
-                    "live": ["foxglove-sdk"]},             # has-control stack --foxglove, foxglove_port
+                    "live": ["foxglove-sdk"],              # has-control stack --foxglove, foxglove_port
+                    "dask": ["dask", "distributed"]},      # --dask: the batch evaluator on a Dask cluster
     entry_points={
         "console_scripts": [
             "has-control = has_control.cli:main",

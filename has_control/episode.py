@@ -229,24 +229,26 @@ def _pool(workers: int):
         return pool
 
 
-def _run_blocks(gains, arr: "EpisodeArrays", out) -> None:
-    """Every block of ``gains`` on :func:`threads` threads. ``_block`` releases
-    the GIL, so Python threads run blocks in parallel; each block writes its own
-    rows of ``out``, so the result does not depend on the schedule."""
-    if gains.shape[0] == 0:
+def _run_blocks(gains, arrays: "list[EpisodeArrays]", outs, workers: int | None = None) -> None:
+    """Every block of ``gains`` under every ``arrays[s]`` (into ``outs[s]``) on
+    ``workers`` threads (default :func:`threads`). ``_block`` releases the GIL,
+    so Python threads run blocks in parallel; each block writes its own rows of
+    its own ``out``, so the result does not depend on the schedule."""
+    if gains.shape[0] == 0 or not arrays:
         return
-    workers = threads()
-    edges = _block_edges(gains.shape[0], workers)
-    args = (arr.actuator, arr.adaptation, arr.reference, arr.episode, arr.x0, out)
+    workers = workers or threads()
+    edges = _block_edges(gains.shape[0], max(1, workers // len(arrays)) if len(arrays) < workers else 1)
+    tasks = [(s, b) for s in range(len(arrays)) for b in range(len(edges) - 1)]
 
-    def run(b):
-        _block(gains, edges[b], edges[b + 1], *args)
-    blocks = range(len(edges) - 1)
-    if workers == 1 or len(blocks) == 1:
-        for b in blocks:
-            run(b)
+    def run(task):
+        s, b = task
+        a = arrays[s]
+        _block(gains, edges[b], edges[b + 1], a.actuator, a.adaptation, a.reference, a.episode, a.x0, outs[s])
+    if workers == 1 or len(tasks) == 1:
+        for task in tasks:
+            run(task)
         return
-    list(_pool(workers).map(run, blocks))
+    list(_pool(workers).map(run, tasks))
 
 
 @dataclass(frozen=True)
@@ -302,6 +304,13 @@ def simulate(cfg: Config | None = None, gains: Gains | tuple | None = None,
     return Trace(trace[:n], Score(j, a, b, c, int(n), bool(bad)), g)
 
 
+def _gains_array(gains) -> np.ndarray:
+    k = np.ascontiguousarray(np.atleast_2d(np.asarray(gains, dtype=np.float64)))
+    if k.ndim != 2 or k.shape[1] != 3:
+        raise ValueError(f"gains: expected shape (P, 3), got {np.shape(gains)}")
+    return k
+
+
 def evaluate(gains, cfg: Config | None = None, metrics: bool = False) -> np.ndarray:
     """Score many gain sets in parallel.
 
@@ -309,14 +318,27 @@ def evaluate(gains, cfg: Config | None = None, metrics: bool = False) -> np.ndar
     ``metrics`` a (P, 4) array of (J, e_max, e_μ, e_σ). Diverged runs give +inf.
     Deterministic: each row depends on its gains only.
     """
-    cfg = cfg or Config()
-    k = np.ascontiguousarray(np.atleast_2d(np.asarray(gains, dtype=np.float64)))
-    if k.ndim != 2 or k.shape[1] != 3:
-        raise ValueError(f"gains: expected shape (P, 3), got {np.shape(gains)}")
-    arr = EpisodeArrays.from_config(cfg)
-    out = np.empty((k.shape[0], 6))
-    _run_blocks(k, arr, out)
-    return out[:, :4].copy() if metrics else out[:, 0].copy()
+    out = evaluate_configs(gains, [cfg or Config()])[:, 0]
+    return out.copy() if metrics else out[:, 0].copy()
+
+
+def evaluate_configs(gains, cfgs, workers: int | None = None) -> np.ndarray:
+    """Every gain set under every configuration (a scenario set), on
+    ``workers`` threads (default :func:`threads`).
+
+    gains: (P, 3); cfgs: S Configs. Returns the (P, S, 4) array of
+    (J, e_max, e_μ, e_σ); a diverged run gives +inf. Row (p, s) depends on
+    gains[p] and cfgs[s] only, so any split of the work (threads, blocks,
+    Dask tasks) gives the same bits.
+    """
+    k = _gains_array(gains)
+    arrays = [EpisodeArrays.from_config(c) for c in cfgs]
+    outs = [np.empty((k.shape[0], 6)) for _ in arrays]
+    _run_blocks(k, arrays, outs, workers)
+    res = np.empty((k.shape[0], len(arrays), 4))
+    for s, out in enumerate(outs):
+        res[:, s] = out[:, :4]
+    return res
 
 
 def _as_gains(g) -> Gains:
@@ -326,4 +348,4 @@ def _as_gains(g) -> Gains:
     return Gains(k1, k2, k3)
 
 
-__all__ = ["TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "with_horizon"]
+__all__ = ["TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs", "with_horizon"]

@@ -14,7 +14,7 @@ from typing import Any, Callable, Iterable, Mapping
 import numpy as np
 
 from .config import check_gain, default_config_files, finite_number, read_parameter_files
-from .episode import evaluate
+from .episode import evaluate_configs
 from .errors import ConfigError, shown
 from .params import Config
 from .swarm import Swarm, SwarmError, SwarmResult, SwarmSettings, minimize
@@ -149,20 +149,26 @@ class TuneResult:
 def tune(cfg: Config | None = None, tuning: Tuning | None = None,
          callback: Callable[[Swarm], bool | None] | None = None,
          swarm: Swarm | None = None,
-         objective: Callable[[np.ndarray], np.ndarray] | None = None) -> TuneResult:
+         objective: Callable[[np.ndarray], np.ndarray] | None = None,
+         batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> TuneResult:
     """Run one tuning session (``swarm`` to resume one).
 
     ``objective`` maps the (N, 3) candidate gains to N costs J; by default
-    the in-process batch evaluator over ``cfg``. The tuner node passes one
-    that runs every candidate through the node graph.
+    the batch evaluator over ``cfg``. The tuner node passes one that runs
+    every candidate through the node graph. ``batch(gains, cfgs)`` is the
+    batch evaluator, with the contract of
+    :func:`~has_control.episode.evaluate_configs` (default: that function,
+    in this process; :mod:`has_control.cluster` gives one on Dask).
     """
     cfg = cfg or Config()
     tuning = tuning or Tuning()
     if swarm is None:
         swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
     if objective is None:
+        run = batch or evaluate_configs
+
         def objective(k):
-            return evaluate(k, cfg)
+            return run(k, [cfg])[:, 0, 0]
     t0 = time.perf_counter()
     result = minimize(objective, None, swarm=swarm, callback=callback)
     return TuneResult(swarm.settings.variant, swarm.seed, result, time.perf_counter() - t0)
