@@ -53,13 +53,13 @@ def _plain_kernel():
     from .reference import reference
 
     @njit(parallel=True, error_model="numpy", nogil=True)
-    def plain(gains, ap, cp, rp, ep, x0, out):
-        ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
+    def plain(gains, ap, pp, cp, rp, sp, ep, x0, out):
+        ap, pp, cp, sp, _, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
         ref = np.empty((n, 4))
         for i in range(n):
             ref[i, 0], ref[i, 1], ref[i, 2], ref[i, 3] = reference(rp, i * dt)
         for p in prange(gains.shape[0]):
-            x1, x2, x3, x4 = x0[0], x0[1], x0[2], x0[3]
+            x1, x2, x3, x4, xv = x0[0], x0[1], x0[2], x0[3], 0.0
             k1, k2, k3 = gains[p, 0], gains[p, 1], gains[p, 2]
             a1, a2 = cp[A1_INIT], cp[A2_INIT]
             x3d = j = count = mean = m2 = peak = 0.0
@@ -68,10 +68,10 @@ def _plain_kernel():
                 in_window = lo <= i <= hi
                 if in_window:
                     count += 1.0
-                x1, x2, x3, x4, a1, a2, x3d, j, mean, m2, peak, bad, _, _, _, _ = sample_step(
-                    x1, x2, x3, x4, a1, a2, x3d, i > 0, ref[i, 0], ref[i, 1], ref[i, 2], ref[i, 3],
-                    k1, k2, k3, j, mean, m2, peak, count, in_window,
-                    ap, cp, ep, dt, y_limit)
+                x1, x2, x3, x4, xv, a1, a2, x3d, j, mean, m2, peak, bad, _, _, _, _ = sample_step(
+                    x1, x2, x3, x4, xv, a1, a2, x3d, i > 0, ref[i, 0], ref[i, 1], ref[i, 2], ref[i, 3],
+                    0.0, 0.0, 0.0, 0.0, False, k1, k2, k3, j, mean, m2, peak, count, in_window,
+                    ap, pp, cp, ep, dt, y_limit)
                 if bad:
                     break
             if not bad:
@@ -96,7 +96,7 @@ def bench_evaluator(particles: int = 80, repeats: int = 3, numpy_horizon: float 
     out = np.empty((particles, 4))
 
     def run_plain():
-        plain(gains, arr.actuator, arr.adaptation, arr.reference, arr.episode, arr.x0, out)
+        plain(gains, arr.actuator, arr.plant, arr.adaptation, arr.reference, arr.sensor, arr.episode, arr.x0, out)
     evaluate(gains[:2])                                   # compile / load the cache
     run_plain()                                           # compile
     same = np.array_equal(out[:, 0], evaluate(gains))

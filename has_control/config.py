@@ -26,7 +26,8 @@ import yaml
 from .errors import ConfigError, shown
 from .files import MiB, read_text
 from .params import (
-    X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Reference,
+    ROAD_CLASSES, X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Noise, Plant,
+    Reference,
 )
 
 
@@ -80,8 +81,11 @@ def _pair(check: Callable[[float], str | None]) -> Callable[[Any], str | None]:
     return inner
 
 
+#: A seed: a whole number in [0, SEED_LIMIT).
+SEED_LIMIT = 2**63
+
 # key -> (section attribute, field name, kind, check)
-#   kind: "float", "pair" (two floats), or a dict of allowed strings
+#   kind: "float", "pair" (two floats), "seed" (a whole number in [0, SEED_LIMIT)), or a dict of allowed strings
 _SCHEMA: dict[str, tuple[str, str, Any, Callable]] = {}
 
 
@@ -111,6 +115,19 @@ _register("reference", "reference", {
     "omega": ("float", _positive), "offset": ("float", _any), "t0": ("float", _non_negative),
     "rise": ("float", _non_negative), "f0": ("float", _non_negative),
     "f1": ("float", _non_negative), "sweep": ("float", _positive),
+    "road_class": (ROAD_CLASSES, None), "speed": ("float", _positive), "cutoff": ("float", _positive),
+    "seed": ("seed", None),
+})
+_register("plant", "plant", {
+    "mass": ("float", _positive), "bulk_modulus": ("float", _positive),
+    "damping": ("float", _non_negative), "leakage": ("float", _non_negative),
+    "supply_pressure": ("float", _positive), "valve_gain": ("float", _positive),
+    "valve_limit": ("float", _non_negative), "valve_time_constant": ("float", _non_negative),
+})
+_register("noise", "noise", {
+    "position": ("float", _non_negative), "velocity": ("float", _non_negative),
+    "pressure_cap": ("float", _non_negative), "pressure_rod": ("float", _non_negative),
+    "seed": ("seed", None),
 })
 _register("simulation", "episode", {
     "step": ("float", _positive), "horizon": ("float", _positive),
@@ -123,7 +140,7 @@ _register("metrics", "episode", {
 
 #: Keys that belong to the nodes and tools, not to the episode; accepted and
 #: passed through (their owners validate them).
-_PASSTHROUGH_PREFIXES = ("plant.", "controller.", "tuner.", "swarm.", "recorder.")
+_PASSTHROUGH_PREFIXES = ("controller.", "tuner.", "swarm.", "recorder.")
 _PASSTHROUGH_KEYS = {"use_sim_time"}
 
 
@@ -268,7 +285,9 @@ def _owners(key: str) -> tuple[str, ...]:
     """The library nodes whose value of ``key`` the library takes (more than one: they must agree)."""
     if key.startswith(("actuator.", "simulation.")):
         return ("/plant", "/controller")
-    if key.startswith(("gains.", "adaptation.", "reference.")):
+    if key.startswith("plant."):
+        return ("/plant",)
+    if key.startswith(("gains.", "adaptation.", "reference.", "noise.")):
         return ("/controller",)
     return ("/tuner",)
 
@@ -311,6 +330,10 @@ def _coerce(key: str, value: Any, kind: Any, source: str) -> Any:
         if not isinstance(value, (list, tuple)) or len(value) != 2:
             raise bad("expected a list of two numbers")
         return tuple(number(v) for v in value)
+    if kind == "seed":
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < SEED_LIMIT:
+            raise bad("expected a whole number in [0, 2^63)")
+        return value
     if isinstance(kind, Mapping):
         if not isinstance(value, str) or value not in kind:
             raise bad(f"expected one of {', '.join(sorted(kind))}")
@@ -327,10 +350,10 @@ def build_config(flat: Mapping[str, Any], source: str = "parameters",
     """
     base = base or Config()
     sections = {name: dataclasses.asdict(getattr(base, name)) for name in
-                ("actuator", "gains", "adaptation", "reference", "episode")}
+                ("actuator", "gains", "adaptation", "reference", "episode", "plant", "noise")}
     where = lambda key: (sources or {}).get(key, source)  # noqa: E731
     for key, value in flat.items():
-        if key in _PASSTHROUGH_KEYS or key.startswith(_PASSTHROUGH_PREFIXES):
+        if key not in _SCHEMA and (key in _PASSTHROUGH_KEYS or key.startswith(_PASSTHROUGH_PREFIXES)):
             continue
         if key not in _SCHEMA:
             raise ConfigError(f"{where(key)}: {key}: unknown parameter")
@@ -345,6 +368,7 @@ def build_config(flat: Mapping[str, Any], source: str = "parameters",
         actuator=Actuator(**sections["actuator"]), gains=Gains(**sections["gains"]),
         adaptation=Adaptation(**sections["adaptation"]),
         reference=Reference(**sections["reference"]), episode=Episode(**sections["episode"]),
+        plant=Plant(**sections["plant"]), noise=Noise(**sections["noise"]),
     )
     _check_relations(cfg, flat, where)
     return cfg
@@ -381,11 +405,34 @@ def _check_relations(cfg: Config, flat: Mapping[str, Any], where) -> None:
         key = "metrics.skip_end" if "metrics.skip_end" in flat else "metrics.skip_start"
         fail(key, getattr(ep, key.split(".")[1]),
              f"metric window [{ep.skip_start}, {ep.horizon} - {ep.skip_end}] s lies outside the horizon")
+    _check_plant(cfg, fail)
+
+
+def _check_plant(cfg: Config, fail) -> None:
+    """The plant's and the reference's checks that involve other keys."""
+    plant, ep, ref = cfg.plant, cfg.episode, cfg.reference
+    true = plant.actuator(cfg.actuator)
+    if true.supply_pressure <= true.return_pressure:
+        key = "plant.supply_pressure" if plant.supply_pressure is not None else "actuator.return_pressure"
+        fail(key, getattr(true, key.split(".")[1]),
+             f"the plant's supply pressure must exceed its return pressure ({true.return_pressure})")
+    if 0.0 < plant.valve_time_constant < ep.step:
+        fail("plant.valve_time_constant", plant.valve_time_constant,
+             f"must be 0 (an ideal valve) or at least simulation.step ({ep.step:g} s), for the RK4 step")
+    if ref.kind == "road":
+        from .road import road_components
+        f, _, _ = road_components(ref, ep.samples * ep.step)
+        if len(f) == 0:
+            fail("reference.cutoff", ref.cutoff,
+                 f"no road component between the band's lower edge and the cutoff (at {ref.speed:g} m/s over a "
+                 f"{ep.samples * ep.step:g} s period); raise the cutoff or the speed")
+        if ref.cutoff >= 0.5 / ep.step:
+            fail("reference.cutoff", ref.cutoff, f"must be below the Nyquist frequency {0.5 / ep.step:g} Hz")
 
 
 def default_config_files() -> list[Path]:
     """The package's own ``config/*.yaml`` that define the episode."""
-    return [CONFIG_DIR / name for name in ("actuator.yaml", "controller.yaml", "simulation.yaml")]
+    return [CONFIG_DIR / name for name in ("actuator.yaml", "controller.yaml", "simulation.yaml", "plant.yaml")]
 
 
 def load_config(paths: Iterable[str | Path] = (), defaults: bool = True) -> Config:
@@ -400,6 +447,8 @@ def config_parameters(cfg: Config) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, (section, attr, kind, _) in _SCHEMA.items():
         v = getattr(getattr(cfg, section), attr)
+        if v is None:                          # a plant parameter that is the model's
+            continue
         out[key] = list(v) if kind == "pair" else v
     return out
 
@@ -413,6 +462,8 @@ def parameter_kind(key: str) -> tuple[Any, tuple[float, bool] | None, float | No
                     check_gain: ((0.0, False), GAIN_MAX)}.get(check, (None, None))
     if lower is None and kind == "pair":
         lower = {"gain": (0.0, True)}.get(key.rsplit(".", 1)[-1])
+    if kind == "seed":
+        lower, upper = (0.0, True), SEED_LIMIT - 1
     return kind, lower, upper
 
 

@@ -22,11 +22,12 @@ from numba.cpython.unsafe.tuple import tuple_setitem
 from numba.np.unsafe.ndarray import to_fixed_tuple
 
 from .abc_controller import abc_law, adapt
-from .actuator import diverged, plant_step
+from .actuator import diverged, valve_plant_step
 from .cost import Score, cost_increment, metric_finish, metric_update
 from .jit import INLINE, KERNEL, LEAF
+from .noise import measurement_noise
 from .params import (
-    A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_SAMPLES, WIN_END, WIN_START,
+    A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_PLANT, N_SAMPLES, N_SENSOR, WIN_END, WIN_START,
     X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
 )
 from .reference import reference
@@ -43,39 +44,48 @@ LANES = 8
 
 
 @njit(**INLINE)
-def sample_step(x1, x2, x3, x4, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, r3, k1, k2, k3,
-                j, mean, m2, peak, count, in_window, ap, cp, ep, dt, y_limit):
+def sample_step(x1, x2, x3, x4, xv, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, r3, n1, n2, n3, n4, noisy,
+                k1, k2, k3, j, mean, m2, peak, count, in_window, ap, pp, cp, ep, dt, y_limit):
     """SPEC §5 steps 3-7 for one candidate at one sample: law, cost, metrics,
     adaptation, plant step and divergence test.
 
-    r0..r3 are the reference values of the sample; ``count`` is the number of
-    window samples including this one, ``in_window`` whether this one is in
-    the window. No branch depends on the lane's own values except through
-    selects, so a loop over lanes of this function vectorises. Returns the
-    next (x1..x4, â1, â2, x3d, J, mean, m2, peak), whether the run diverged,
-    and (u, e1, e2, e3) of this sample.
+    x1..x4 is the plant's true state and xv its spool [m]; r0..r3 are the
+    reference values of the sample; the controller (model ``ap``) reads the
+    state plus the noise n1..n4 when ``noisy``, the plant (plant array ``pp``)
+    steps the true state, and the cost and metrics take the true
+    e1 = x1d − x1. ``count`` is the number of window samples including this
+    one, ``in_window`` whether this one is in the window. No branch depends
+    on the lane's own values except through selects, so a loop over lanes of
+    this function vectorises. Returns the next (x1..x4, xv, â1, â2, x3d, J,
+    mean, m2, peak), whether the run diverged, and (u, e1, e2, e3) of this
+    sample (e1 the true one; e2, e3 the controller's).
     """
-    u, e1, e2, e3, rate1, rate2, x3d = abc_law(
-        x1, x2, x3, x4, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, r3, k1, k2, k3, ap, cp, dt)
+    u, _, e2, e3, rate1, rate2, x3d = abc_law(
+        x1 + n1 if noisy else x1, x2 + n2 if noisy else x2, x3 + n3 if noisy else x3, x4 + n4 if noisy else x4,
+        a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, r3, k1, k2, k3, ap, cp, dt)
+    e1 = r0 - x1                                    # the law's own e1 when there is no noise
     j += cost_increment(e1, u, ep)
     _, mean_w, m2_w, peak_w = metric_update(count - 1.0, mean, m2, peak, e1)
     mean = mean_w if in_window else mean
     m2 = m2_w if in_window else m2
     peak = peak_w if in_window else peak
     b1, b2 = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
-    y, v, p1, p2 = plant_step(x1, x2, x3, x4, u, ap, dt)
+    y, v, p1, p2, sv = valve_plant_step(x1, x2, x3, x4, xv, u, pp, dt)
     bad = diverged(y, v, p1, p2, y_limit) | (not math.isfinite(u))
-    return y, v, p1, p2, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3
+    return y, v, p1, p2, sv, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3
 
 
 @njit(**LEAF)
-def _constants(ap, cp, ep):
+def _constants(ap, pp, cp, sp, ep):
     """The parameter arrays as tuples (in a loop, their entries are values
     rather than loads from memory LLVM cannot prove unaliased), and the grid:
-    (ap, cp, ep, dt, samples, first and last window sample, y_limit)."""
+    (ap, pp, cp, sp, whether there is noise, ep, dt, samples, first and last
+    window sample, y_limit)."""
     ept = to_fixed_tuple(ep, N_EPISODE)
-    return (to_fixed_tuple(ap, N_ACTUATOR), to_fixed_tuple(cp, N_CONTROLLER), ept, ept[DT],
-            int(ept[N_SAMPLES]), int(ept[WIN_START]), int(ept[WIN_END]), ept[Y_LIMIT])
+    spt = to_fixed_tuple(sp, N_SENSOR)
+    noisy = (spt[0] != 0.0) | (spt[1] != 0.0) | (spt[2] != 0.0) | (spt[3] != 0.0)
+    return (to_fixed_tuple(ap, N_ACTUATOR), to_fixed_tuple(pp, N_PLANT), to_fixed_tuple(cp, N_CONTROLLER), spt,
+            noisy, ept, ept[DT], int(ept[N_SAMPLES]), int(ept[WIN_START]), int(ept[WIN_END]), ept[Y_LIMIT])
 
 
 @njit(**LEAF)
@@ -88,15 +98,17 @@ def put_trace_row(row, t, x1d, y, ydot, p1, p2, u, e1, e2, e3, a1_hat, a2_hat):
 
 
 @njit(**KERNEL)
-def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
-    """Run one episode; fill ``trace`` rows if it has any. Returns
+def _episode(k1, k2, k3, ap, pp, cp, rp, sp, seed, ep, x0, trace):
+    """Run one episode; fill ``trace`` rows if it has any (the true state, the
+    command, the true e1 and the controller's e2, e3 and estimates). Returns
     (J, e_max, e_μ, e_σ, samples, diverged)."""
-    ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
+    ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
     record = trace.shape[0] > 0
     x1 = x0[0]
     x2 = x0[1]
     x3 = x0[2]
     x4 = x0[3]
+    xv = 0.0
     a1_hat = cp[A1_INIT]
     a2_hat = cp[A2_INIT]
     x3d = 0.0
@@ -105,42 +117,44 @@ def _episode(k1, k2, k3, ap, cp, rp, ep, x0, trace):
     for i in range(n):
         t = i * dt
         r0, r1, r2, r3 = reference(rp, t)
+        n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
         in_window = lo <= i <= hi
         if in_window:
             count += 1.0
-        y, v, p1, p2, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3 = sample_step(
-            x1, x2, x3, x4, a1_hat, a2_hat, x3d, i > 0, r0, r1, r2, r3, k1, k2, k3,
-            j, mean, m2, peak, count, in_window, ap, cp, ep, dt, y_limit)
+        y, v, p1, p2, sv, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3 = sample_step(
+            x1, x2, x3, x4, xv, a1_hat, a2_hat, x3d, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, k1, k2, k3,
+            j, mean, m2, peak, count, in_window, ap, pp, cp, ep, dt, y_limit)
         if record:
             put_trace_row(trace[i], t, r0, x1, x2, x3, x4, u, e1, e2, e3, a1_hat, a2_hat)
         if bad:
             return math.inf, math.inf, math.inf, math.inf, i + 1, True
-        x1, x2, x3, x4, a1_hat, a2_hat = y, v, p1, p2, b1, b2
+        x1, x2, x3, x4, xv, a1_hat, a2_hat = y, v, p1, p2, sv, b1, b2
     e_max, e_mu, e_sigma = metric_finish(count, mean, m2, peak)
     return j, e_max, e_mu, e_sigma, n, False
 
 
 # rows of a block's lane state
-_X1, _X2, _X3, _X4, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 = range(15)
-_ROWS = 15
+_X1, _X2, _X3, _X4, _XV, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 = range(16)
+_ROWS = 16
 
 
 @njit(**INLINE)
-def _lanes(s, has_prev, r0, r1, r2, r3, count, in_window, ap, cp, ep, dt, y_limit, mark):
+def _lanes(s, has_prev, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp, ep, dt, y_limit,
+           mark):
     """One sample of every lane of a block: the loop LLVM vectorises. A lane
     that diverges at this sample gets ``mark`` in its _DEAD row."""
     for q in range(LANES):
-        (s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_A1, q], s[_A2, q], s[_X3D, q], s[_J, q],
+        (s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_XV, q], s[_A1, q], s[_A2, q], s[_X3D, q], s[_J, q],
          s[_MEAN, q], s[_M2, q], s[_PEAK, q], bad, _, _, _, _) = sample_step(
-            s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_A1, q], s[_A2, q], s[_X3D, q], has_prev,
-            r0, r1, r2, r3, s[_K1, q], s[_K2, q], s[_K3, q],
-            s[_J, q], s[_MEAN, q], s[_M2, q], s[_PEAK, q], count, in_window, ap, cp, ep, dt, y_limit)
+            s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_XV, q], s[_A1, q], s[_A2, q], s[_X3D, q], has_prev,
+            r0, r1, r2, r3, n1, n2, n3, n4, noisy, s[_K1, q], s[_K2, q], s[_K3, q],
+            s[_J, q], s[_MEAN, q], s[_M2, q], s[_PEAK, q], count, in_window, ap, pp, cp, ep, dt, y_limit)
         dead = s[_DEAD, q]
         s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
 
 
 @njit(**KERNEL)
-def _block(gains, first, last, ap, cp, rp, ep, x0, out):
+def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
     """Episodes of candidates first..last-1 (at most LANES) advanced sample by
     sample together, structure of arrays: lane q of row r is ``s[r, q]``.
 
@@ -151,7 +165,7 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
     each of two copies of the lane loop, so neither computes the other mode's
     division (4 % faster than one loop computing both).
     """
-    ap, cp, ep, dt, n, lo, hi, y_limit = _constants(ap, cp, ep)
+    ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
     backward = int(cp[X3D_MODE]) == X3D_BACKWARD
     cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
     cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
@@ -170,13 +184,16 @@ def _block(gains, first, last, ap, cp, rp, ep, x0, out):
     count = 0.0
     for i in range(n):
         r0, r1, r2, r3 = reference(rp, i * dt)
+        n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
         in_window = lo <= i <= hi
         if in_window:
             count += 1.0
         if backward:
-            _lanes(s, i > 0, r0, r1, r2, r3, count, in_window, ap, cp_backward, ep, dt, y_limit, i + 1.0)
+            _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp_backward, ep, dt,
+                   y_limit, i + 1.0)
         else:
-            _lanes(s, i > 0, r0, r1, r2, r3, count, in_window, ap, cp_analytic, ep, dt, y_limit, i + 1.0)
+            _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp_analytic, ep, dt,
+                   y_limit, i + 1.0)
         alive = 0
         for q in range(LANES):
             alive += s[_DEAD, q] == 0.0
@@ -242,8 +259,7 @@ def _run_blocks(gains, arrays: "list[EpisodeArrays]", outs, workers: int | None 
 
     def run(task):
         s, b = task
-        a = arrays[s]
-        _block(gains, edges[b], edges[b + 1], a.actuator, a.adaptation, a.reference, a.episode, a.x0, outs[s])
+        _block(gains, edges[b], edges[b + 1], *arrays[s].kernel_args(), outs[s])
     if workers == 1 or len(tasks) == 1:
         for task in tasks:
             run(task)
@@ -253,18 +269,31 @@ def _run_blocks(gains, arrays: "list[EpisodeArrays]", outs, workers: int | None 
 
 @dataclass(frozen=True)
 class EpisodeArrays:
-    """The flat arrays the kernel reads, built once from a :class:`Config`."""
+    """The flat arrays the kernel reads, built once from a :class:`Config`:
+    the controller's model (``actuator``), the plant's (``plant``), the
+    adaptation, the reference (a road tabulated on the episode's grid), the
+    sensor noise's standard deviations and seed, the grid, and the plant's
+    initial state (its own static equilibrium, SPEC §4)."""
 
     actuator: np.ndarray
+    plant: np.ndarray
     adaptation: np.ndarray
     reference: np.ndarray
+    sensor: np.ndarray
+    seed: int
     episode: np.ndarray
     x0: np.ndarray
 
     @classmethod
     def from_config(cls, cfg: Config) -> "EpisodeArrays":
-        return cls(cfg.actuator.as_array(), cfg.adaptation.as_array(), cfg.reference.as_array(),
-                   cfg.episode.as_array(), cfg.actuator.initial_state())
+        return cls(cfg.actuator.as_array(), cfg.plant.as_array(cfg.actuator), cfg.adaptation.as_array(),
+                   cfg.reference.as_array(cfg.episode), cfg.noise.as_array(), int(cfg.noise.seed),
+                   cfg.episode.as_array(), cfg.plant.actuator(cfg.actuator).initial_state())
+
+    def kernel_args(self) -> tuple:
+        """(ap, pp, cp, rp, sp, seed, ep, x0): the arguments the kernels take after the gains."""
+        return (self.actuator, self.plant, self.adaptation, self.reference, self.sensor, self.seed, self.episode,
+                self.x0)
 
 
 @dataclass(frozen=True)
@@ -299,8 +328,7 @@ def simulate(cfg: Config | None = None, gains: Gains | tuple | None = None,
     arr = EpisodeArrays.from_config(cfg)
     start = arr.x0 if x0 is None else np.asarray(x0, dtype=np.float64)
     trace = np.zeros((cfg.episode.samples, _NCOL))
-    j, a, b, c, n, bad = _episode(g.k1, g.k2, g.k3, arr.actuator, arr.adaptation, arr.reference,
-                                  arr.episode, start, trace)
+    j, a, b, c, n, bad = _episode(g.k1, g.k2, g.k3, *arr.kernel_args()[:-1], start, trace)
     return Trace(trace[:n], Score(j, a, b, c, int(n), bool(bad)), g)
 
 

@@ -21,9 +21,10 @@ import numpy as np
 from numba import njit
 
 from .abc_controller import abc_law, adapt
-from .actuator import diverged, joint_state, plant_step
+from .actuator import diverged, joint_state, valve_plant_step
 from .episode import put_trace_row
 from .jit import KERNEL
+from .noise import measurement_noise
 from .reference import reference
 from .topics import (CLOCK_LAYOUT, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, REFERENCE_LAYOUT,
                      STATE_LAYOUT)
@@ -61,15 +62,17 @@ def encode_state(x, ap, sample, step_ns, state, clock, scr):
 
 
 @njit(**KERNEL)
-def plant_sample(x, u, ap, dt, y_limit, sample, step_ns, state, clock, scr):
-    """Advance x in place by one step with valve command u [m] and encode the
-    new state as sample ``sample`` (the next index). Returns True if it diverged."""
-    y, v, p1, p2 = plant_step(x[0], x[1], x[2], x[3], u, ap, dt)
+def plant_sample(x, u, pp, dt, y_limit, sample, step_ns, state, clock, scr):
+    """Advance x = (y, ẏ, P1, P2, spool) in place by one step of the plant of
+    plant array ``pp`` with valve command u [m] and encode the new state as
+    sample ``sample`` (the next index). Returns True if it diverged."""
+    y, v, p1, p2, sv = valve_plant_step(x[0], x[1], x[2], x[3], x[4], u, pp, dt)
     x[0] = y
     x[1] = v
     x[2] = p1
     x[3] = p2
-    encode_state(x, ap, sample, step_ns, state, clock, scr)
+    x[4] = sv
+    encode_state(x, pp, sample, step_ns, state, clock, scr)
     return diverged(y, v, p1, p2, y_limit)
 
 
@@ -90,12 +93,15 @@ def command_of(data, step_ns, scr):
 # --- controller ----------------------------------------------------------------
 
 @njit(**KERNEL)
-def controller_sample(data, mem, gains, ap, cp, rp, dt, step_ns, command, internals, ref, trace):
+def controller_sample(data, mem, gains, ap, cp, rp, sp, seed, dt, step_ns, command, internals, ref, trace):
     """Answer one state message: the command (stamped like the state), the
     internals [t, e1, e2, e3, â1, â2, x1d] and the reference [t, x1d, ẋ1d, ẍ1d,
-    x1d⁽³⁾], then adapt ``mem`` (â1, â2, x3d of the previous sample).
+    x1d⁽³⁾], then adapt ``mem`` (â1, â2, x3d of the previous sample). The law
+    reads the state plus the measurement noise of sample i (sensor array
+    ``sp``, ``seed``; none when ``sp`` is all 0), as the episode kernel does.
 
-    Writes row i of ``trace`` (the episode's TRACE_COLUMNS) when i < len(trace).
+    Writes row i of ``trace`` (the episode's TRACE_COLUMNS: the state as
+    received, the true e1 = x1d − y) when i < len(trace).
     Returns the sample index i, or MALFORMED / NOT_FINITE (nothing written).
     """
     if not matches(data, _STATE_T, _STATE_FIXED):
@@ -115,8 +121,12 @@ def controller_sample(data, mem, gains, ap, cp, rp, dt, step_ns, command, intern
     r0, r1, r2, r3 = reference(rp, t)
     a1_hat = mem[A1_HAT]
     a2_hat = mem[A2_HAT]
+    m1, m2, m3, m4 = x1, x2, p1, p2
+    if sp[0] != 0.0 or sp[1] != 0.0 or sp[2] != 0.0 or sp[3] != 0.0:
+        n1, n2, n3, n4 = measurement_noise(sp, seed, i)
+        m1, m2, m3, m4 = x1 + n1, x2 + n2, p1 + n3, p2 + n4
     u, e1, e2, e3, rate1, rate2, x3d = abc_law(
-        x1, x2, p1, p2, a1_hat, a2_hat, mem[X3D_PREV], mem[HAS_PREV] > 0.0,
+        m1, m2, m3, m4, a1_hat, a2_hat, mem[X3D_PREV], mem[HAS_PREV] > 0.0,
         r0, r1, r2, r3, gains[0], gains[1], gains[2], ap, cp, dt)
     for k in range(4, 12):
         command[k] = data[k]                        # the stamp of the state it answers
@@ -128,7 +138,7 @@ def controller_sample(data, mem, gains, ap, cp, rp, dt, step_ns, command, intern
     for k in range(5):
         put_f64(ref, _REFERENCE_V[k], rrow[k], scr, sb)
     if i < trace.shape[0]:
-        put_trace_row(trace[i], t, r0, x1, x2, p1, p2, u, e1, e2, e3, a1_hat, a2_hat)
+        put_trace_row(trace[i], t, r0, x1, x2, p1, p2, u, r0 - x1, e2, e3, a1_hat, a2_hat)
     mem[A1_HAT], mem[A2_HAT] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
     mem[X3D_PREV] = x3d
     mem[HAS_PREV] = 1.0

@@ -9,6 +9,7 @@ layout is fixed by the index constants below, so numba sees plain arrays.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -19,6 +20,14 @@ MASS, AREA_CAP, AREA_ROD, BULK, DAMPING, LEAKAGE, V_CAP0, V_ROD0, GRAVITY, \
     P_SUPPLY, P_RETURN, VALVE_GAIN = range(12)
 N_ACTUATOR = 12
 
+# --- plant array layout: the actuator's (true) parameters, then its valve ---
+VALVE_LIMIT, VALVE_RATE = N_ACTUATOR, N_ACTUATOR + 1
+N_PLANT = N_ACTUATOR + 2
+
+# --- sensor (measurement noise) array layout --------------------------------
+NOISE_Y, NOISE_YDOT, NOISE_P1, NOISE_P2 = range(4)
+N_SENSOR = 4
+
 # --- controller (adaptation) array layout ----------------------------------
 SIGMA1, SIGMA2, A1_INIT, A2_INIT, A1_MIN, A2_MIN, A1_MAX, A2_MAX, X3D_MODE = range(9)
 N_CONTROLLER = 9
@@ -27,9 +36,14 @@ X3D_MODES = {"analytic": X3D_ANALYTIC, "backward_difference": X3D_BACKWARD}
 
 # --- reference array layout -------------------------------------------------
 REF_KIND, REF_AMPLITUDE, REF_OMEGA, REF_OFFSET, REF_T0, REF_RISE, REF_F0, \
-    REF_F1, REF_SWEEP = range(9)
-REF_ZERO, REF_SINE, REF_STEP, REF_CHIRP = range(4)
-REFERENCE_KINDS = {"zero": REF_ZERO, "sine": REF_SINE, "step": REF_STEP, "chirp": REF_CHIRP}
+    REF_F1, REF_SWEEP, REF_ROWS, REF_TABLE_STEP = range(11)
+#: Header of the reference array; a tabulated kind (road) follows it with REF_ROWS rows of
+#: (x1d, ẋ1d, ẍ1d, x1d⁽³⁾), one each REF_TABLE_STEP [s].
+N_REFERENCE = 11
+REF_ZERO, REF_SINE, REF_STEP, REF_CHIRP, REF_ROAD = range(5)
+REFERENCE_KINDS = {"zero": REF_ZERO, "sine": REF_SINE, "step": REF_STEP, "chirp": REF_CHIRP, "road": REF_ROAD}
+#: ISO 8608 road classes: displacement PSD Gd(n0) [m³] at n0 = 0.1 cycles/m (the class's geometric mean).
+ROAD_CLASSES = {"A": 16e-6, "B": 64e-6, "C": 256e-6, "D": 1024e-6, "E": 4096e-6}
 
 # --- episode array layout ---------------------------------------------------
 DT, N_SAMPLES, LAMBDA1, LAMBDA2, LAMBDA3, WIN_START, WIN_END, Y_LIMIT = range(8)
@@ -81,6 +95,66 @@ class Actuator:
         ], dtype=np.float64)
 
 
+#: The actuator parameters a plant may have apart from the controller's model.
+PLANT_OVERRIDES = ("mass", "bulk_modulus", "damping", "leakage", "supply_pressure", "valve_gain")
+
+
+@dataclass(frozen=True)
+class Plant:
+    """The simulated actuator, where it differs from the controller's model.
+
+    Each of mass [kg], bulk_modulus [Pa], damping [N·s/m], leakage
+    [m³/(s·Pa)], supply_pressure [Pa] and valve_gain [m²·√(1/kg·m)] is the
+    model's (``actuator.*``) when None. valve_limit u_max [m]: the spool
+    travel, |u| ≤ u_max (0: no limit); valve_time_constant τ_v [s]: a
+    first-order valve, τ_v·ẋv = u − xv, stepped as a fifth state in the same
+    RK4 (0: an ideal valve, xv = u). The defaults are the reference
+    configuration: the plant is the model, the valve ideal.
+    """
+
+    mass: float | None = None
+    bulk_modulus: float | None = None
+    damping: float | None = None
+    leakage: float | None = None
+    supply_pressure: float | None = None
+    valve_gain: float | None = None
+    valve_limit: float = 0.0
+    valve_time_constant: float = 0.0
+
+    def actuator(self, model: Actuator) -> Actuator:
+        """The plant's own parameters: ``model`` with this plant's overrides."""
+        changes = {k: getattr(self, k) for k in PLANT_OVERRIDES if getattr(self, k) is not None}
+        return dataclasses.replace(model, **changes) if changes else model
+
+    def as_array(self, model: Actuator) -> np.ndarray:
+        """The plant array: :meth:`Actuator.as_array` of :meth:`actuator`, then
+        u_max [m] and 1/τ_v [1/s] (0 for an ideal valve)."""
+        rate = 1.0 / self.valve_time_constant if self.valve_time_constant > 0.0 else 0.0
+        return np.concatenate([self.actuator(model).as_array(), [self.valve_limit, rate]])
+
+
+@dataclass(frozen=True)
+class Noise:
+    """Measurement noise on what the controller reads: zero-mean Gaussian with
+    standard deviations position [m] (y), velocity [m/s] (ẏ), pressure_cap and
+    pressure_rod [Pa] (P1, P2), a pure function of (seed, sample, channel)
+    (:mod:`has_control.noise`), so every path draws the same values. The
+    cost and metrics use the true y. All 0 (the reference): exact states."""
+
+    position: float = 0.0
+    velocity: float = 0.0
+    pressure_cap: float = 0.0
+    pressure_rod: float = 0.0
+    seed: int = 0
+
+    @property
+    def active(self) -> bool:
+        return bool(self.position or self.velocity or self.pressure_cap or self.pressure_rod)
+
+    def as_array(self) -> np.ndarray:
+        return np.array([self.position, self.velocity, self.pressure_cap, self.pressure_rod], dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class Gains:
     """Back-stepping gains k1 [1/s], k2 [1/s], k3 [1/s]."""
@@ -124,6 +198,9 @@ class Reference:
                  (C³, so x1d⁽³⁾ exists); rise = 0 gives a hard step.
     kind 'chirp': offset + amplitude·sin(2π(f0·t + (f1 − f0)·t²/(2·sweep)))
     kind 'zero': x1d ≡ offset.
+    kind 'road': offset + an ISO 8608 road profile of class road_class (A-E)
+                 driven at speed [m/s], band-limited to cutoff [Hz] (what the
+                 actuator can follow), seeded (:mod:`has_control.road`).
     """
 
     kind: str = "sine"
@@ -135,12 +212,26 @@ class Reference:
     f0: float = 0.1
     f1: float = 2.0
     sweep: float = 10.0
+    road_class: str = "C"
+    speed: float = 20.0
+    cutoff: float = 2.0
+    seed: int = 0
 
-    def as_array(self) -> np.ndarray:
-        return np.array([
+    def as_array(self, episode: "Episode | None" = None) -> np.ndarray:
+        """The reference array; a road is tabulated on ``episode``'s grid (one
+        period of the profile: it repeats after the horizon)."""
+        head = np.array([
             float(REFERENCE_KINDS[self.kind]), self.amplitude, self.omega, self.offset,
-            self.t0, self.rise, self.f0, self.f1, self.sweep,
+            self.t0, self.rise, self.f0, self.f1, self.sweep, 0.0, 0.0,
         ], dtype=np.float64)
+        if self.kind != "road":
+            return head
+        from .road import road_table
+        episode = episode or Episode()
+        table = road_table(self, episode)
+        head[REF_ROWS] = len(table)
+        head[REF_TABLE_STEP] = episode.step
+        return np.concatenate([head, table.ravel()])
 
 
 @dataclass(frozen=True)
@@ -190,6 +281,8 @@ class Config:
     adaptation: Adaptation = field(default_factory=Adaptation)
     reference: Reference = field(default_factory=Reference)
     episode: Episode = field(default_factory=Episode)
+    plant: Plant = field(default_factory=Plant)
+    noise: Noise = field(default_factory=Noise)
 
 
 #: The paper's hand-set gains and its PSO+CP+TVAC result (SPEC §8).

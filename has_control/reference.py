@@ -1,7 +1,9 @@
 """Reference trajectories x1d(t) [m] with analytic derivatives up to the third.
 
 Kinds (see :class:`has_control.params.Reference`): zero, sine (SPEC §4 default,
-0.11·sin 2t), step (septic smooth step, C³), chirp (linear frequency sweep).
+0.11·sin 2t), step (septic smooth step, C³), chirp (linear frequency sweep),
+road (an ISO 8608 profile, :mod:`has_control.road`, tabulated on the sample
+grid and periodic after it).
 """
 from __future__ import annotations
 
@@ -11,15 +13,23 @@ from numba import njit
 
 from .jit import INLINE
 from .params import (
-    REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE,
-    REF_SINE, REF_STEP, REF_SWEEP, REF_T0,
+    N_REFERENCE, REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE,
+    REF_ROAD, REF_ROWS, REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP,
 )
 
 
 @njit(**INLINE)
 def reference(rp, t):
-    """(x1d, ẋ1d, ẍ1d, x1d⁽³⁾) at time t [s] for the reference array rp."""
+    """(x1d, ẋ1d, ẍ1d, x1d⁽³⁾) at time t [s] for the reference array rp.
+
+    A tabulated kind (road) is defined on its grid t = i·step: t is rounded
+    to the nearest sample, and the table repeats after its last row."""
     kind = int(rp[REF_KIND])
+    if kind == REF_ROAD:
+        rows = int(rp[REF_ROWS])
+        i = int(math.floor(t / rp[REF_TABLE_STEP] + 0.5)) % rows
+        k = N_REFERENCE + 4 * i
+        return rp[k], rp[k + 1], rp[k + 2], rp[k + 3]
     a = rp[REF_AMPLITUDE]
     off = rp[REF_OFFSET]
     if kind == REF_SINE:

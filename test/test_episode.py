@@ -91,8 +91,7 @@ def test_one_sample_step_compiles_to_one_function():
     fresh = njit(**dict(KERNEL, cache=False))(episode._block.py_func)
     a = episode.EpisodeArrays.from_config(Config())
     out = np.empty((1, 6))
-    fresh(np.array([[400.0, 400.0, 400.0]]), 0, 1, a.actuator, a.adaptation, a.reference,
-          a.episode, a.x0, out)
+    fresh(np.array([[400.0, 400.0, 400.0]]), 0, 1, *a.kernel_args(), out)
     ir = next(iter(fresh.inspect_llvm().values()))
     body = re.search(r"define [^\n]*_block[^\n]*\n(.*?)\n}\n", ir, re.S).group(1)
     called = set(re.findall(r"call [^@]*@\"?([\w.$]+)", body))

@@ -28,7 +28,7 @@ def test_block_lane_loop_uses_packed_division_and_sqrt():
     a = episode.EpisodeArrays.from_config(Config())
     gains = np.array([[400.0, 400.0, 400.0]])
     out = np.empty((1, 6))
-    fresh(gains, 0, 1, a.actuator, a.adaptation, a.reference, a.episode, a.x0, out)
+    fresh(gains, 0, 1, *a.kernel_args(), out)
     asm = next(iter(fresh.inspect_asm().values()))
     packed_div = re.findall(r"\bvdivpd\s+[^\n]*%[yz]mm", asm)
     packed_sqrt = re.findall(r"\bvsqrtpd\s+[^\n]*%[yz]mm", asm)

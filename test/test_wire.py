@@ -33,7 +33,7 @@ def _controller_answer(state: bytes):
     mem[loop.A1_HAT], mem[loop.A2_HAT] = cfg.adaptation.initial
     bufs = [topics.COMMAND_LAYOUT.buffer(), topics.CONTROLLER_STATE_LAYOUT.buffer(), topics.REFERENCE_LAYOUT.buffer()]
     i = loop.controller_sample(state, mem, np.array(cfg.gains.as_tuple()), arr.actuator, arr.adaptation,
-                               arr.reference, cfg.episode.step, STEP_NS, *bufs, np.zeros((0, 12)))
+                               arr.reference, arr.sensor, arr.seed, cfg.episode.step, STEP_NS, *bufs, np.zeros((0, 12)))
     return i, [b.tobytes() for b in bufs]
 
 

@@ -11,7 +11,9 @@ another layout, off the sample grid or with a non-finite value is refused and co
 at most every 5 s): it never reaches the estimates.
 
 Parameters: ``gains.k1..k3`` [1/s] (> 0), ``adaptation.*``, ``reference.*``,
-the model ``actuator.*`` and ``simulation.step``. A parameter set that the
+the model ``actuator.*``, ``simulation.step`` and ``noise.*``: the seeded
+measurement noise the law reads on top of each state it receives (the state
+topic carries the plant's true state, which the trace and a bag keep). A parameter set that the
 core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
 and the old values stay; accepted changes apply from the next sample.
 ``simulation.*`` (the step must be the plant's) is read-only after start-up.
@@ -45,7 +47,7 @@ from .foxglove import node_tap
 from .messages import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
 from .parameters import config_from_node, declare_config
 
-PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.")
+PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "noise.")
 
 
 class ControllerNode(Node):
@@ -84,6 +86,7 @@ class ControllerNode(Node):
         self.cfg = cfg
         arr = EpisodeArrays.from_config(cfg)
         self.ap, self.cp, self.rp = arr.actuator, arr.adaptation, arr.reference
+        self.sp, self.seed = arr.sensor, arr.seed
         self.k = cfg.gains.as_tuple()
         self._gains = np.array(self.k)
         self.dt = cfg.episode.step
@@ -117,7 +120,8 @@ class ControllerNode(Node):
         """Compile (or load) the step before joining the graph."""
         mem = self._mem.copy()
         loop.controller_sample(bytes(STATE_LAYOUT.template), mem, self._gains, self.ap, self.cp, self.rp,
-                               self.dt, self.step_ns, self._command, self._internals, self._reference, self.trace)
+                               self.sp, self.seed, self.dt, self.step_ns, self._command, self._internals,
+                               self._reference, self.trace)
 
     # --- parameters --------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
@@ -155,8 +159,8 @@ class ControllerNode(Node):
             self._apply(self._pending)
             self._pending = None
             self._announce = True
-        i = loop.controller_sample(data, self._mem, self._gains, self.ap, self.cp, self.rp, self.dt,
-                                   self.step_ns, self._command, self._internals, self._reference, self.trace)
+        i = loop.controller_sample(data, self._mem, self._gains, self.ap, self.cp, self.rp, self.sp, self.seed,
+                                   self.dt, self.step_ns, self._command, self._internals, self._reference, self.trace)
         if i < 0:
             self.malformed_states += 1
             what = "a non-finite value" if i == NOT_FINITE else "not the plant's JointState on the sample grid"

@@ -4,11 +4,11 @@ from __future__ import annotations
 import sys
 from typing import Any
 
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
 from ..config import build_config, config_parameters, load_config, parameter_comments, parameter_kind
-from ..params import Config
+from ..params import PLANT_OVERRIDES, Config
 
 
 def declare_config(node: Node, prefixes: tuple[str, ...], cfg: Config | None = None,
@@ -27,12 +27,27 @@ def declare_config(node: Node, prefixes: tuple[str, ...], cfg: Config | None = N
             node.declare_parameter(key, value, describe(key, comments.get(key, key), key.startswith(read_only)))
 
 
+def declare_plant_overrides(node: Node) -> None:
+    """Declare ``plant.<name>`` for each actuator parameter a plant may have
+    apart from the model (:data:`~has_control.params.PLANT_OVERRIDES`),
+    read-only, defaulting to the node's ``actuator.<name>``: unset, the plant
+    is the model."""
+    comments = parameter_comments()
+    for name in PLANT_OVERRIDES:
+        key = f"plant.{name}"
+        model = node.get_parameter(f"actuator.{name}").value
+        text = f"the plant's own {comments.get(f'actuator.{name}', name)}; default: actuator.{name}"
+        node.declare_parameter(key, model, describe(key, text, read_only=True))
+
+
 def describe(key: str, text: str, read_only: bool = False) -> ParameterDescriptor:
     """The descriptor of config key ``key`` with description ``text``."""
     kind, bound, upper = parameter_kind(key)
     desc = ParameterDescriptor(description=text, read_only=read_only)
     if isinstance(kind, dict):
         desc.additional_constraints = f"one of: {', '.join(kind)}"
+    elif kind == "seed":
+        desc.integer_range = [IntegerRange(from_value=0, to_value=upper, step=1)]
     elif bound is not None:
         lower, inclusive = bound
         if kind == "float":

@@ -38,7 +38,10 @@ Topics: ``state`` (sensor_msgs/JointState, out), ``command``
 ``/clock`` in the root namespace). Services (std_srvs/Trigger): ``~/reset``
 back to the initial state at sample 0 and idle; ``~/start`` run an episode of
 ``samples`` samples (0: until stopped) from the current state.
-Parameters: ``actuator.*``, ``simulation.*``, ``mode``, ``samples``,
+Parameters: ``actuator.*``, ``simulation.*``, ``plant.*`` (this plant where it
+differs from the model ``actuator.*``: mass, bulk_modulus, damping, leakage,
+supply_pressure, valve_gain, each defaulting to its ``actuator.*``; the valve's
+travel limit ``valve_limit`` [m] and lag ``valve_time_constant`` [s]), ``mode``, ``samples``,
 ``command_timeout`` [s], ``startup_timeout`` [s], ``failsafe_samples``, ``realtime_priority``
 (SCHED_FIFO priority, 0: normal scheduling), ``autostart`` (``main`` starts
 the first episode when a controller connects), ``keep_alive`` (``main`` keeps
@@ -51,6 +54,7 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -64,9 +68,9 @@ from ..wire import NOT_FINITE
 from .foxglove import node_tap
 from .messages import CONTROL_QOS, node_main, qos, raw_publish, trigger_service
 from .pacing import LoopStats, run_paced
-from .parameters import config_from_node, declare_config
+from .parameters import config_from_node, declare_config, declare_plant_overrides
 
-PREFIXES = ("actuator.", "simulation.")
+PREFIXES = ("actuator.", "simulation.", "plant.")
 MODES = ("lockstep", "realtime")
 #: The plant's own parameters: (name, default, meaning and unit).
 OWN_PARAMETERS = (
@@ -88,6 +92,7 @@ class PlantNode(Node):
         """``tap(topic)``: a function taking every state and clock message published (an in-process observer)."""
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES, read_only=PREFIXES)
+        declare_plant_overrides(self)
         for name, value, text in OWN_PARAMETERS:
             self.declare_parameter(name, value, ParameterDescriptor(
                 description=text, read_only=name in ("mode", "realtime_priority"),
@@ -97,8 +102,8 @@ class PlantNode(Node):
             if reason is not None:
                 raise ValueError(f"parameter {reason}")
         cfg = config_from_node(self, PREFIXES)
-        self.actuator = cfg.actuator
-        self.ap = cfg.actuator.as_array()
+        self.actuator = cfg.plant.actuator(cfg.actuator)      # this plant's own parameters
+        self.ap = cfg.plant.as_array(cfg.actuator)            # ... and its valve
         self.step_s = cfg.episode.step
         self.step_ns = int(round(self.step_s * 1e9))
         self.y_limit = cfg.episode.y_limit
@@ -140,7 +145,7 @@ class PlantNode(Node):
 
     def _warm_up(self) -> None:
         """Compile (or load) the step and the decoder before joining the graph."""
-        x = self.actuator.initial_state()
+        x = self._initial_state()
         loop.plant_sample(x, 0.0, self.ap, self.step_s, self.y_limit, 1, self.step_ns,
                           self._state_msg, self._clock_msg, self._scratch)
         loop.command_of(bytes(self._state_msg), self.step_ns, self._scratch)
@@ -181,7 +186,7 @@ class PlantNode(Node):
     # --- the hardware: state out, command in, step ----------------------------
     def _reset_state(self) -> None:
         """Back to the initial state at sample 0, idle until :meth:`start`."""
-        self.x = self.actuator.initial_state()
+        self.x = self._initial_state()
         self.sample = self._first_sample = 0
         self.finished = False
         self.diverged = False
@@ -190,6 +195,11 @@ class PlantNode(Node):
         loop.encode_state(self.x, self.ap, 0, self.step_ns, self._state_msg, self._clock_msg, self._scratch)
         self._last_publish = time.monotonic()
         self._published = False
+
+    def _initial_state(self) -> np.ndarray:
+        """(y, ẏ, P1, P2, spool): the plant at rest (SPEC §4, with its own
+        parameters), the spool centred."""
+        return np.append(self.actuator.initial_state(), 0.0)
 
     def start(self) -> None:
         """Run an episode from the current state (lock-step: publishes it now;
@@ -223,7 +233,7 @@ class PlantNode(Node):
         controller's answer to it, not a held or fail-safe value); False when the
         episode ends (the diverged state is then published, for the record)."""
         if self.log is not None:
-            self.log.append((self.sample, *map(float, self.x), u))
+            self.log.append((self.sample, *map(float, self.x[:4]), u))
         k = self.sample % ANSWERS_KEPT
         self._answered_at[k], self._answers[k] = (self.sample, u) if answered else (-1, 0.0)
         self.sample += 1
