@@ -126,15 +126,37 @@ def _tuning_args(args):
         raise HasControlError(f"command line: {exc}") from None
 
 
+def _robust(args, cfg, tuning):
+    """``tuning`` with the scenarios of ``--scenarios`` and ``--aggregate``."""
+    from .scenarios import load_scenarios, parse_aggregate
+    if args.aggregate and not args.scenarios:
+        raise HasControlError(f"--aggregate {args.aggregate}: needs --scenarios FILE")
+    if not args.scenarios:
+        return tuning
+    return tuning.replace(scenarios=load_scenarios(args.scenarios, cfg),
+                          aggregate=parse_aggregate(args.aggregate or "mean"))
+
+
+def _batch(args):
+    """The batch evaluator of ``--dask SPEC`` (a context manager), else the local one (None)."""
+    from contextlib import nullcontext
+    if not getattr(args, "dask", None):
+        return nullcontext(None)
+    from .cluster import dask_batch
+    return dask_batch(args.dask)
+
+
 def cmd_tune(args) -> int:
     from .session import run_session
     if args.resume:
         if args.out and Path(args.out) != Path(args.resume):
             raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")
+        if args.scenarios or args.aggregate:
+            raise HasControlError("--scenarios/--aggregate: a resumed session scores on its own scenarios")
         cfg = tuning = None
     else:
         cfg = _load(args)
-        tuning = _tuning_args(args)
+        tuning = _robust(args, cfg, _tuning_args(args))
     progress = Progress()
 
     def artefacts(res, directory: Path) -> None:
@@ -142,8 +164,11 @@ def cmd_tune(args) -> int:
         plot_convergence([(res.variant, res.result)], directory / "convergence.png")
         plot_gains(res.result, directory / "gains.png", f"{res.variant}, seed {res.seed}")
     try:
-        run = run_session(cfg, tuning, args.out, resume_dir=args.resume, replace=args.force, on_iteration=progress,
-                          artefacts=artefacts, announce=lambda m: print(m, file=sys.stderr))
+        with _batch(args) as batch:
+            run = run_session(cfg, tuning, args.out, resume_dir=args.resume, replace=args.force,
+                              on_iteration=progress, artefacts=artefacts, batch=batch,
+                              evaluator="dask" if args.dask else "batch",
+                              announce=lambda m: print(m, file=sys.stderr))
     finally:
         progress.close()
     res, out = run.result, run.out
@@ -151,12 +176,35 @@ def cmd_tune(args) -> int:
         print(json.dumps(out))
     else:
         k = res.gains
+        robust = f" ({res.aggregate} over {res.scenarios} scenarios)" if res.scenarios else ""
         print(f"{res.variant}, seed {res.seed}: k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), "
-              f"J = {res.result.fun:.6e} after {res.result.nit} iterations, "
+              f"J = {res.result.fun:.6e}{robust} after {res.result.nit} iterations, "
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
         if run.directory:
             print(f"wrote {run.directory / 'tune.json'}, gains.yaml (a --params-file for the controller), "
                   f"convergence.png, gains.png and the session bag {run.bag}")
+    return 0
+
+
+def cmd_robustness(args) -> int:
+    from .robustness import robustness_table
+    from .scenarios import load_scenarios, parse_aggregate
+    cfg = _load(args)
+    gains = [_gains_arg(g) for g in args.gains]
+    labels = list(args.label or [])
+    if len(labels) > len(gains):
+        raise HasControlError(f"--label {labels[len(gains)]}: more labels than --gains")
+    labels += [f"k = ({g[0]:g}, {g[1]:g}, {g[2]:g})" for g in gains[len(labels):]]
+    scenarios = load_scenarios(args.scenarios, cfg)
+    with _batch(args) as batch:
+        table = robustness_table(gains, labels, cfg, scenarios, parse_aggregate(args.aggregate), batch)
+    if args.plot:
+        from .plots import plot_robustness
+        plot_robustness(table, args.plot)
+    if args.markdown:
+        from .files import write_atomic
+        write_atomic(args.markdown, table.markdown())
+    print(json.dumps(table.as_json()) if args.json else table.text())
     return 0
 
 
@@ -330,6 +378,12 @@ def _port(text: str) -> int:
     return v
 
 
+def _dask_spec(text: str) -> str:
+    """An argparse type: ``local:N`` or ``tcp://HOST:PORT`` (checked by :mod:`has_control.cluster`)."""
+    from .cluster import parse_spec
+    return parse_spec(text)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors (no usage block) and exit status 2."""
 
@@ -367,10 +421,30 @@ def build_parser() -> argparse.ArgumentParser:
                         "convergence.png, gains.png")
     t.add_argument("--resume", metavar="DIR",
                    help="continue the session in DIR from its last complete iteration (its settings apply)")
+    t.add_argument("--scenarios", metavar="FILE",
+                   help="robust tuning: score each candidate on every scenario of this YAML file")
+    t.add_argument("--aggregate", metavar="HOW", help="with --scenarios: mean (default), max or cvar:ALPHA")
+    t.add_argument("--dask", type=_dask_spec, metavar="SPEC",
+                   help="evaluate on a Dask cluster: local:N (N local workers) or tcp://HOST:PORT (a scheduler)")
     t.add_argument("--force", action="store_true",
                    help="with --out: replace the session and tune.json already in DIR")
     t.add_argument("--json", action="store_true", help="print one JSON object")
     t.set_defaults(func=cmd_tune)
+
+    rb = sub.add_parser("robustness", help="J and e_max of gain sets on every scenario of a set, and their aggregates")
+    rb.add_argument("--gains", nargs=3, action="append", required=True, metavar=("K1", "K2", "K3"),
+                    help="a gain set [1/s] (repeatable)")
+    rb.add_argument("--label", action="append", metavar="NAME", help="a name for each --gains, in order")
+    rb.add_argument("--scenarios", required=True, metavar="FILE", help="scenario YAML file")
+    rb.add_argument("--aggregate", default="cvar:0.2", metavar="HOW",
+                    help="the tail shown beside mean and max: cvar:ALPHA (default cvar:0.2), mean or max")
+    rb.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
+    rb.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
+    rb.add_argument("--dask", type=_dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
+    rb.add_argument("--plot", metavar="FILE.png", help="write J and e_max per scenario as a figure")
+    rb.add_argument("--markdown", metavar="FILE.md", help="write the table as Markdown")
+    rb.add_argument("--json", action="store_true", help="print one JSON object")
+    rb.set_defaults(func=cmd_robustness)
 
     rp = sub.add_parser("reproduce", help="the paper's experiment over seeds, as a report")
     rp.add_argument("--seeds", type=_positive_int, default=10, metavar="N", help="seeds 1..N (default 10)")

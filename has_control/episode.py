@@ -339,13 +339,20 @@ def _gains_array(gains) -> np.ndarray:
     return k
 
 
-def evaluate(gains, cfg: Config | None = None, metrics: bool = False) -> np.ndarray:
+def evaluate(gains, cfg: Config | None = None, metrics: bool = False, scenarios=None, aggregate="mean"):
     """Score many gain sets in parallel.
 
     gains: (P, 3) array of (k1, k2, k3). Returns the (P,) costs J, or with
     ``metrics`` a (P, 4) array of (J, e_max, e_μ, e_σ). Diverged runs give +inf.
     Deterministic: each row depends on its gains only.
+
+    With ``scenarios`` (a sequence of :class:`~has_control.scenarios.Scenario`)
+    returns their :class:`~has_control.scenarios.ScenarioScores` instead: the
+    per-scenario metrics and the ``aggregate`` (mean, max, cvar:α) of J.
     """
+    if scenarios is not None:
+        from .scenarios import evaluate_scenarios
+        return evaluate_scenarios(gains, cfg or Config(), scenarios, aggregate)
     out = evaluate_configs(gains, [cfg or Config()])[:, 0]
     return out.copy() if metrics else out[:, 0].copy()
 

@@ -87,3 +87,30 @@ def plot_convergence_spread(groups, path: str | Path) -> Path:
     ax.legend(fontsize=8)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def plot_robustness(table, path: str | Path) -> Path:
+    """J and e_max of each gain set on every scenario (a :class:`~has_control.robustness.RobustnessTable`),
+    scenarios sorted by the first gain set's J; a diverged run is marked at the top of its panel."""
+    import numpy as np
+    m = table.scores.metrics
+    order = np.argsort(np.where(np.isfinite(m[0, :, 0]), m[0, :, 0], np.inf), kind="stable")
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    x = np.arange(len(order))
+    for ax, k, name in ((axes[0], 0, "J"), (axes[1], 1, "e_max [m]")):
+        finite = m[:, :, k][np.isfinite(m[:, :, k])]
+        top = finite.max() * 3 if finite.size else 1.0
+        for p, label in enumerate(table.labels):
+            v = m[p, order, k]
+            ok = np.isfinite(v)
+            line, = ax.semilogy(x[ok], v[ok], "o", ms=4, label=label)
+            if (~ok).any():
+                ax.semilogy(x[~ok], np.full((~ok).sum(), top), "x", ms=7, color=line.get_color(),
+                            label=f"{label}: diverged ({(~ok).sum()})")
+        ax.set_ylabel(name)
+        ax.grid(True, which="major", alpha=0.3)
+    axes[0].set_title(f"Robustness on {m.shape[1]} scenarios (sorted by {table.labels[0]}'s J)")
+    axes[0].legend(fontsize=8)
+    axes[1].set_xlabel("scenario")
+    fig.tight_layout()
+    return _save(fig, path)

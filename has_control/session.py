@@ -232,7 +232,7 @@ class SessionRun:
 
 def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, resume_dir: str | Path | None = None,
                 replace: bool = False, evaluator: str = "batch", make_objective=None, on_iteration=None,
-                record_validation=None, artefacts=None, announce=None, on_warning=warn) -> SessionRun:
+                record_validation=None, artefacts=None, announce=None, on_warning=warn, batch=None) -> SessionRun:
     """One tuning session, as both front ends run it (``has-control tune`` and the tuner node).
 
     Opens the session in ``directory`` (or resumes the one in ``resume_dir``
@@ -246,7 +246,9 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
     node graph; default: the in-process trace), ``artefacts(result, directory)``
     (figures), ``gains.yaml`` (a ``--params-file``) and, last, ``tune.json``
     (written then renamed: its presence says the session finished).
-    ``announce(message)`` hears what a resume found.
+    ``announce(message)`` hears what a resume found. ``batch``: the batch
+    evaluator (see :func:`~has_control.tuning.tune`; a Dask one gives the
+    same bits, so a session may resume on another).
     """
     from .config import write_gains_params
     from .files import write_atomic
@@ -270,9 +272,10 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
     try:
         objective = make_objective(cfg) if make_objective is not None else None
         if stored is not None:
-            res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"])
+            res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"],
+                             stored.get("scenarios", 0), stored.get("aggregate", ""))
         else:
-            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm, objective=objective)
+            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm, objective=objective, batch=batch)
         out = res.as_json()
         bag = None
         if session is not None:

@@ -17,6 +17,7 @@ from .config import check_gain, default_config_files, finite_number, read_parame
 from .episode import evaluate_configs
 from .errors import ConfigError, shown
 from .params import Config
+from .scenarios import Aggregate, Scenario, parse_aggregate, scenario_configs, scenarios_from_json
 from .swarm import Swarm, SwarmError, SwarmResult, SwarmSettings, minimize
 
 TUNER_FILE = default_config_files()[0].parent / "tuner.yaml"
@@ -24,12 +25,16 @@ TUNER_FILE = default_config_files()[0].parent / "tuner.yaml"
 
 @dataclass(frozen=True)
 class Tuning:
-    """A tuning session's settings: the swarm, the search box and the seed."""
+    """A tuning session's settings: the swarm, the search box and the seed,
+    and what a candidate is scored on: the nominal episode, or (robust
+    tuning) the ``aggregate`` of its costs over ``scenarios``."""
 
     swarm: SwarmSettings = SwarmSettings()
     lower: tuple[float, float, float] = (150.0, 150.0, 150.0)
     upper: tuple[float, float, float] = (1200.0, 800.0, 800.0)
     seed: int = 1
+    scenarios: tuple[Scenario, ...] = ()
+    aggregate: Aggregate = Aggregate()
 
     @property
     def bounds(self):
@@ -37,7 +42,7 @@ class Tuning:
 
     def replace(self, **changes) -> "Tuning":
         """Override seed, lower, upper or any SwarmSettings field; validated."""
-        top = {k: changes.pop(k) for k in ("seed", "lower", "upper") if k in changes}
+        top = {k: changes.pop(k) for k in ("seed", "lower", "upper", "scenarios", "aggregate") if k in changes}
         t = dataclasses.replace(self, swarm=dataclasses.replace(self.swarm, **changes), **top)
         t.swarm.validate()
         if isinstance(t.seed, bool) or not isinstance(t.seed, int) or not 0 <= t.seed < 2**64:
@@ -111,11 +116,15 @@ def tuning_parameters(t: Tuning) -> dict[str, Any]:
 
 def tuning_json(t: Tuning) -> dict:
     """A Tuning as JSON-ready data (a session bag's settings; inverse: :func:`tuning_from_json`)."""
-    return {"swarm": dataclasses.asdict(t.swarm), "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
+    d = {"swarm": dataclasses.asdict(t.swarm), "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
+    if t.scenarios:
+        d.update(scenarios=[s.as_json() for s in t.scenarios], aggregate=str(t.aggregate))
+    return d
 
 
 def tuning_from_json(d: dict) -> Tuning:
-    return Tuning(SwarmSettings(**d["swarm"]), tuple(d["lower"]), tuple(d["upper"]), int(d["seed"]))
+    return Tuning(SwarmSettings(**d["swarm"]), tuple(d["lower"]), tuple(d["upper"]), int(d["seed"]),
+                  scenarios_from_json(d.get("scenarios", ())), parse_aggregate(d.get("aggregate", "mean")))
 
 
 def load_tuning(paths: Iterable[str | Path] = (), defaults: bool = True) -> Tuning:
@@ -132,6 +141,8 @@ class TuneResult:
     seed: int
     result: SwarmResult
     seconds: float
+    scenarios: int = 0              # robust tuning: J is the aggregate over this many scenarios
+    aggregate: str = ""
 
     @property
     def gains(self) -> tuple[float, float, float]:
@@ -143,7 +154,9 @@ class TuneResult:
         return {"variant": self.variant, "seed": self.seed, "gains": list(self.gains),
                 "J": to_json(self.result.fun), "iterations": self.result.nit,
                 "evaluations": self.result.nfev, "seconds": self.seconds,
-                "history": [to_json(h.best_cost) for h in self.result.history]}
+                "history": [to_json(h.best_cost) for h in self.result.history],
+                **({"scenarios": self.scenarios, "aggregate": self.aggregate,
+                    "episodes": self.result.nfev * self.scenarios} if self.scenarios else {})}
 
 
 def tune(cfg: Config | None = None, tuning: Tuning | None = None,
@@ -154,7 +167,8 @@ def tune(cfg: Config | None = None, tuning: Tuning | None = None,
     """Run one tuning session (``swarm`` to resume one).
 
     ``objective`` maps the (N, 3) candidate gains to N costs J; by default
-    the batch evaluator over ``cfg``. The tuner node passes one that runs
+    the batch evaluator over ``cfg`` (robust tuning: the aggregate of the
+    costs over ``tuning.scenarios``). The tuner node passes one that runs
     every candidate through the node graph. ``batch(gains, cfgs)`` is the
     batch evaluator, with the contract of
     :func:`~has_control.episode.evaluate_configs` (default: that function,
@@ -166,9 +180,15 @@ def tune(cfg: Config | None = None, tuning: Tuning | None = None,
         swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
     if objective is None:
         run = batch or evaluate_configs
+        if tuning.scenarios:
+            configs = scenario_configs(cfg, tuning.scenarios)
 
-        def objective(k):
-            return run(k, [cfg])[:, 0, 0]
+            def objective(k):
+                return tuning.aggregate(run(k, configs)[:, :, 0])
+        else:
+            def objective(k):
+                return run(k, [cfg])[:, 0, 0]
     t0 = time.perf_counter()
     result = minimize(objective, None, swarm=swarm, callback=callback)
-    return TuneResult(swarm.settings.variant, swarm.seed, result, time.perf_counter() - t0)
+    return TuneResult(swarm.settings.variant, swarm.seed, result, time.perf_counter() - t0,
+                      len(tuning.scenarios), str(tuning.aggregate) if tuning.scenarios else "")
