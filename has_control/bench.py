@@ -162,6 +162,26 @@ def bench_paper(seed: int = 1) -> dict:
             "episodes": sum(r["evaluations"] for r in runs.values()), "runs": runs, "cores": threads()}
 
 
+def bench_scenarios(counts=(1, 10, 100), particles: int = 80, horizon: float = 2.0, repeats: int = 3) -> dict:
+    """Episodes/s of ``particles`` candidates on 1, 10 and 100 scenarios
+    (drifting plants as in config/scenarios.yaml), best of ``repeats``: the
+    cost of scenario evaluation should be linear in their number."""
+    from .config import CONFIG_DIR
+    from .episode import evaluate_configs, with_horizon
+    from .scenarios import Scenario, load_scenarios, scenario_configs
+    cfg = with_horizon(Config(), horizon)
+    drawn = [s for s in load_scenarios(CONFIG_DIR / "scenarios_heldout.yaml") if s.name.startswith("held-out")]
+    gains = np.random.default_rng(0).uniform(*BOUNDS, size=(particles, 3))
+    evaluate_configs(gains[:2], scenario_configs(cfg, drawn[:2]))      # compile / load the cache
+    out = {}
+    for count in counts:
+        sc = [Scenario(f"{drawn[i % len(drawn)].name}-{i}", drawn[i % len(drawn)].overrides) for i in range(count)]
+        configs = scenario_configs(cfg, sc)
+        t = _best_of(repeats, lambda: evaluate_configs(gains, configs))
+        out[count] = {"seconds": t, "episodes_per_second": particles * count / t}
+    return {"particles": particles, "horizon": horizon, "runs": out}
+
+
 def bench_scoring() -> float:
     """Seconds to score a 10 s bag (33 333 samples, 5 topics), best of 3."""
     import tempfile
@@ -186,7 +206,18 @@ def main(argv=None) -> int:
     ap.add_argument("--evaluator", action="store_true",
                     help="run only the evaluator comparison (blocks against the plain loop)")
     ap.add_argument("--graph", action="store_true", help="run only the node-graph table (about a minute)")
+    ap.add_argument("--scenarios", action="store_true",
+                    help="run only the scenario scaling: episodes/s on 1, 10 and 100 scenarios")
     args = ap.parse_args(argv)
+    if args.scenarios:
+        r = bench_scenarios(repeats=args.repeats)
+        base = r["runs"][1]["episodes_per_second"]
+        print(f"scenario evaluation: {r['particles']} candidates x S scenarios, {r['horizon']:g} s episodes, "
+              f"best of {args.repeats}")
+        for count, run in r["runs"].items():
+            print(f"  S = {count:3d}: {run['seconds']:.3f} s, {run['episodes_per_second']:,.0f} episodes/s "
+                  f"({run['episodes_per_second'] / base:.2f}x the rate at S = 1)")
+        return 0
     if args.graph:
         from .nodes.loopbench import bench_graph, print_graph
         print_graph(bench_graph(repeats=args.repeats))
