@@ -41,12 +41,12 @@ from .params import Config
 MAX_LOCAL_WORKERS = 1024
 
 #: The chunk plan's cost model (:func:`plan_tasks`), measured by ``scripts/bench --dask``
-#: on the reference machine (2 cores, one worker thread each):
-#: one block (LANES candidates) for one sample [s], i.e. 6.7 ms for a 10 s episode of 33 334 samples;
-BLOCK_SAMPLE_SECONDS = 2.0e-7
-#: the cost of one task beyond its blocks (serialisation, messages, the worker's bookkeeping) [s];
+#: on the reference machine (2 cores, ``local:2``; docs/scaling.md):
+#: one block (LANES candidates) for one sample on one thread [s]: 7.2 ms for a 10 s episode of 33 333 samples;
+BLOCK_SAMPLE_SECONDS = 2.2e-7
+#: one task's cost beyond its blocks (messages, (de)serialisation, bookkeeping) [s]: 1.5 ms a trivial task;
 TASK_SECONDS = 1.5e-3
-#: and the scheduler's own time per task [s], which no number of workers shares.
+#: and the part of it the scheduler (and client) spend, one task after another whatever the workers [s].
 SCHEDULER_TASK_SECONDS = 5.0e-4
 #: Among chunk counts whose modelled time is within this fraction of the best,
 #: the plan takes the fewest that give every worker several tasks (dynamic balance).
@@ -124,7 +124,8 @@ def modelled_seconds(chunks: int, scenarios: int, blocks: int, workers: int, blo
 
 
 def plan_tasks(candidates: int, samples: list[int], nthreads: dict[str, int] | list[int],
-               block_sample_seconds: float = BLOCK_SAMPLE_SECONDS) -> list[tuple[int, int, int]]:
+               block_sample_seconds: float = BLOCK_SAMPLE_SECONDS,
+               chunk: int | None = None) -> list[tuple[int, int, int]]:
     """The tasks of one call: (scenario s, first, last candidate), in order.
 
     ``samples[s]`` is scenario s's episode length [samples]; ``nthreads`` the
@@ -134,6 +135,7 @@ def plan_tasks(candidates: int, samples: list[int], nthreads: dict[str, int] | l
     :func:`modelled_seconds`; within PLAN_TOLERANCE of the best, the fewest
     chunks that give every worker TASKS_PER_WORKER tasks win (more tasks
     balance better when cores are shared, fewer cost less overhead).
+    ``chunk`` (candidates per task) overrides the plan, for measurements.
     """
     counts = list(nthreads.values()) if isinstance(nthreads, dict) else list(nthreads)
     scenarios = len(samples)
@@ -142,11 +144,15 @@ def plan_tasks(candidates: int, samples: list[int], nthreads: dict[str, int] | l
     workers = max(1, len(counts))
     unit = LANES * max(1, max(counts, default=1))                  # candidates of one unit
     units = math.ceil(candidates / unit)
-    unit_seconds = max(samples) * block_sample_seconds             # a unit on its worker's T threads
-    costs = [modelled_seconds(c, scenarios, units, workers, unit_seconds) for c in range(1, units + 1)]
-    good = [c for c, cost in enumerate(costs, 1) if cost <= (1.0 + PLAN_TOLERANCE) * min(costs)]
-    enough = [c for c in good if scenarios * c >= TASKS_PER_WORKER * workers]
-    chunks = min(enough) if enough else max(good)
+    if chunk is not None:
+        unit, units = int(chunk), math.ceil(candidates / int(chunk))
+        chunks = units
+    else:
+        unit_seconds = max(samples) * block_sample_seconds         # a unit on its worker's T threads
+        costs = [modelled_seconds(c, scenarios, units, workers, unit_seconds) for c in range(1, units + 1)]
+        good = [c for c, cost in enumerate(costs, 1) if cost <= (1.0 + PLAN_TOLERANCE) * min(costs)]
+        enough = [c for c in good if scenarios * c >= TASKS_PER_WORKER * workers]
+        chunks = min(enough) if enough else max(good)
     edges = [min(candidates, round(units * i / chunks) * unit) for i in range(chunks + 1)]
     return [(s, edges[i], edges[i + 1]) for s in range(scenarios) for i in range(chunks) if edges[i] < edges[i + 1]]
 
@@ -168,8 +174,9 @@ class DaskBatch:
     """
 
     def __init__(self, spec: str, connect_timeout: float = 5.0, worker_timeout: float = 60.0,
-                 min_workers: int = 1, check_bits: bool = True):
+                 min_workers: int = 1, check_bits: bool = True, chunk: int | None = None):
         self.spec = parse_spec(spec)
+        self.chunk = chunk                    # candidates per task; None: plan_tasks decides
         self.min_workers = int(self.spec.split(":")[1]) if self.spec.startswith("local:") else max(1, int(min_workers))
         self.connect_timeout = float(connect_timeout)
         self.worker_timeout = float(worker_timeout)
@@ -264,7 +271,7 @@ class DaskBatch:
         out = np.empty((k.shape[0], len(cfgs), 4))
         if out.size == 0:
             return out
-        tasks = plan_tasks(k.shape[0], [c.episode.samples for c in cfgs], self._workers())
+        tasks = plan_tasks(k.shape[0], [c.episode.samples for c in cfgs], self._workers(), chunk=self.chunk)
         tokens = self._stored(cfgs)
         futures = self.client.map(evaluate_chunk, [k[lo:hi] for _, lo, hi in tasks], [self._store_name] * len(tasks),
                                   [tokens[s] for s, _, _ in tasks], pure=True)

@@ -275,3 +275,13 @@ def test_tune_through_dask_survives_a_worker_killed_mid_task(dask_processes, tmp
     assert got.result.fun == expected.result.fun
     assert [h.best_cost for h in got.result.history] == [h.best_cost for h in expected.result.history]
     assert got.result.nfev == expected.result.nfev
+
+
+def test_scaling_model_of_the_bench():
+    from has_control.bench import LAYOUTS, dask_scaling
+    rows = dask_scaling(7.2e-3, 0.9e-3, 0.5e-3, 4.4e-3)
+    assert len(rows) == 2 * len(LAYOUTS)
+    paper = {(r["workers"], r["threads"]): r for r in rows if r["case"] == "paper"}
+    assert paper[(64, 1)]["tasks"] == 10                           # one block a task: all an iteration has
+    assert paper[(512, 1)]["iteration_seconds"] == paper[(64, 1)]["iteration_seconds"]
+    assert all(0 < r["efficiency"] <= 1 for r in rows)
