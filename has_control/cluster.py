@@ -159,6 +159,11 @@ def plan_tasks(candidates: int, samples: list[int], nthreads: dict[str, int] | l
 
 # --- the client -----------------------------------------------------------------------------------
 
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else ""
+
+
 class DaskBatch:
     """A batch evaluator on a Dask cluster: ``batch(gains, cfgs)`` has the
     contract of :func:`~has_control.episode.evaluate_configs`.
@@ -236,9 +241,8 @@ class DaskBatch:
             try:
                 scores, info = future.result(timeout=self.worker_timeout + 120.0)
             except Exception as exc:
-                why = str(exc).splitlines()[0] if str(exc) else ""
                 raise ClusterError(f"dask spec {self.spec}: worker {worker} cannot run has_control: "
-                                   f"{type(exc).__name__}: {why}") from None
+                                   f"{type(exc).__name__}: {_first_line(exc)}") from None
             if check_bits and not np.array_equal(scores, expected, equal_nan=True):
                 raise ClusterError(f"dask spec {self.spec}: worker {worker} computes other bits than this process "
                                    f"(has_control {info['has_control']}, numba {info['numba']}, NumPy "
@@ -271,17 +275,22 @@ class DaskBatch:
         out = np.empty((k.shape[0], len(cfgs), 4))
         if out.size == 0:
             return out
-        tasks = plan_tasks(k.shape[0], [c.episode.samples for c in cfgs], self._workers(), chunk=self.chunk)
-        tokens = self._stored(cfgs)
-        futures = self.client.map(evaluate_chunk, [k[lo:hi] for _, lo, hi in tasks], [self._store_name] * len(tasks),
-                                  [tokens[s] for s, _, _ in tasks], pure=True)
+        from concurrent.futures import CancelledError
+
+        from distributed import KilledWorker
         try:
+            tasks = plan_tasks(k.shape[0], [c.episode.samples for c in cfgs], self._workers(), chunk=self.chunk)
+            tokens = self._stored(cfgs)
+            futures = self.client.map(evaluate_chunk, [k[lo:hi] for _, lo, hi in tasks],
+                                      [self._store_name] * len(tasks), [tokens[s] for s, _, _ in tasks], pure=True)
             parts = self.client.gather(futures)
-        except Exception as exc:
-            if type(exc).__name__ == "KilledWorker":
-                raise ClusterError(f"dask spec {self.spec}: workers kept dying while running a task "
-                                   f"(distributed.scheduler.allowed-failures exceeded): {exc}") from None
-            raise
+        except KilledWorker as exc:
+            raise ClusterError(f"dask spec {self.spec}: {exc.allowed_failures + 1} workers died running task "
+                               f"{exc.task} (distributed.scheduler.allowed-failures = {exc.allowed_failures}); "
+                               f"the last was {exc.last_worker.address}: see its log") from None
+        except (OSError, CancelledError) as exc:             # OSError: CommClosedError, TimeoutError
+            raise ClusterError(f"dask spec {self.spec}: lost the cluster ({type(exc).__name__}: "
+                               f"{_first_line(exc)})") from None
         for (s, lo, hi), part in zip(tasks, parts):
             out[lo:hi, s] = part
         return out

@@ -171,6 +171,21 @@ class KillOnceArmed(WorkerPlugin):
         os.kill(os.getpid(), signal.SIGKILL)
 
 
+def test_a_lost_scheduler_is_one_line(dask_processes):
+    """The scheduler dies between calls: the client tries to reconnect for
+    connect_timeout, then the call fails with one line naming the address."""
+    address, scheduler, _ = dask_processes
+    cfgs = short_configs()[:1]
+    with dask_batch(address, connect_timeout=3.0, worker_timeout=120.0, min_workers=2) as batch:
+        assert batch(random_gains(8), cfgs).shape == (8, 1, 4)
+        scheduler.kill()
+        scheduler.wait(30)
+        with pytest.raises(ClusterError) as err:
+            batch(random_gains(8), cfgs)
+    message = str(err.value)
+    assert "\n" not in message and address in message and "lost the cluster" in message
+
+
 def test_a_restarted_local_worker_gets_the_configs_and_reruns_the_task(tmp_path):
     """local:1: the only worker dies mid-task; its nanny restarts it, the
     Config store reaches it as it registers, the task runs again."""
@@ -199,6 +214,18 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _wait_for_port(port: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
+    """Until something accepts connections on 127.0.0.1:port (the scheduler has started)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+            return
+        except OSError:
+            time.sleep(0.1)
+    raise RuntimeError(f"dask scheduler on port {port} did not start (exit status {proc.poll()})")
+
+
 def _stop(proc: subprocess.Popen) -> None:
     if proc.poll() is None:
         proc.terminate()
@@ -213,10 +240,11 @@ def _stop(proc: subprocess.Popen) -> None:
 def dask_processes(tmp_path, request):
     """``dask scheduler`` and two ``dask worker --nthreads 1 --no-nanny`` on
     127.0.0.1, importing the tree under test; stopped whatever happens.
-    Yields (address, {pid: worker process})."""
+    Yields (address, scheduler process, {pid: worker process})."""
     if not DASK.exists():
         pytest.skip(f"no dask console script at {DASK}")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(TREE)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    path = [str(TREE)] + ([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
     env.setdefault("NUMBA_CACHE_DIR", str(TREE / ".numba-cache"))
     procs = []
 
@@ -231,12 +259,14 @@ def dask_processes(tmp_path, request):
         for proc in reversed(procs):
             _stop(proc)
     request.addfinalizer(stop_all)
-    address = f"tcp://127.0.0.1:{_free_port()}"
-    start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1], "--no-dashboard"])
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    scheduler = start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"])
+    _wait_for_port(port, scheduler)
     workers = [start(f"worker{i}", ["worker", address, "--nthreads", "1", "--no-nanny", "--no-dashboard",
                                     "--host", "127.0.0.1", "--name", f"w{i}", "--death-timeout", "120"])
                for i in range(2)]
-    yield address, {w.pid: w for w in workers}
+    yield address, scheduler, {w.pid: w for w in workers}
 
 
 def test_tune_through_dask_survives_a_worker_killed_mid_task(dask_processes, tmp_path):
@@ -244,7 +274,7 @@ def test_tune_through_dask_survives_a_worker_killed_mid_task(dask_processes, tmp
     time, not results: the scheduler reruns the task on the other worker and
     the tuning ends with the gains, cost and history of a run without Dask."""
     import cloudpickle
-    address, workers = dask_processes
+    address, _, workers = dask_processes
     cfg = build_config(dict(SHORT, **{"simulation.horizon": 0.5}), base=Config())
     tuning = Tuning().replace(particles=16, iterations=4)
     expected = tune(cfg, tuning)
