@@ -152,6 +152,20 @@ def test_local_cluster_gives_the_bits_of_evaluate_configs():
         batch(gains, cfgs)
 
 
+def test_a_worker_with_other_bits_is_refused(monkeypatch):
+    """The warm-up compares every worker's probe with this process's: here
+    this process pretends to compute other bits (a different kernel or libm)."""
+    import has_control.cluster as cluster
+
+    def off_by_one_ulp(gains, cfgs, workers=None):
+        return np.nextafter(evaluate_configs(gains, cfgs, workers), np.inf)
+    monkeypatch.setattr(cluster, "evaluate_configs", off_by_one_ulp)
+    with pytest.raises(ClusterError) as err:
+        dask_batch("local:1")
+    message = str(err.value)
+    assert "\n" not in message and "computes other bits than this process" in message
+
+
 class KillOnceArmed(WorkerPlugin):
     """A worker plugin: the first worker to start a chunk task after ``armed``
     exists writes its pid to ``claimed`` and SIGKILLs itself, mid-task."""
