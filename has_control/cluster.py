@@ -268,6 +268,8 @@ class DaskBatch:
         from .cluster_worker import evaluate_chunk
         if self.client is None:
             raise ClusterError(f"dask spec {self.spec}: the batch is closed")
+        if self.client.status in ("closing", "closed"):       # it gave up reconnecting to a lost scheduler
+            raise ClusterError(f"dask spec {self.spec}: lost the cluster (the client has closed)")
         k = np.ascontiguousarray(np.atleast_2d(np.asarray(gains, dtype=np.float64)))
         if k.ndim != 2 or k.shape[1] != 3:
             raise ValueError(f"gains: expected shape (P, 3), got {np.shape(gains)}")

@@ -196,8 +196,10 @@ def test_a_lost_scheduler_is_one_line(dask_processes):
         scheduler.wait(30)
         with pytest.raises(ClusterError) as err:
             batch(random_gains(8), cfgs)
-    message = str(err.value)
-    assert "\n" not in message and address in message and "lost the cluster" in message
+        with pytest.raises(ClusterError) as again:                    # and so does every later call
+            batch(random_gains(8), cfgs)
+    for message in (str(err.value), str(again.value)):
+        assert "\n" not in message and address in message and "lost the cluster" in message
 
 
 def test_a_restarted_local_worker_gets_the_configs_and_reruns_the_task(tmp_path):
