@@ -159,9 +159,10 @@ def plan_tasks(candidates: int, samples: list[int], nthreads: dict[str, int] | l
 
 # --- the client -----------------------------------------------------------------------------------
 
-def _first_line(exc: BaseException) -> str:
-    lines = str(exc).strip().splitlines()
-    return lines[0] if lines else ""
+def _one_line(exc: BaseException, limit: int = 240) -> str:
+    """An exception's message on one line, at most ``limit`` characters."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= limit else text[:limit - 1] + "…"
 
 
 class DaskBatch:
@@ -241,8 +242,12 @@ class DaskBatch:
             try:
                 scores, info = future.result(timeout=self.worker_timeout + 120.0)
             except Exception as exc:
+                if "deserialization of the task graph" in str(exc):
+                    raise ClusterError(f"dask spec {self.spec}: the scheduler cannot load has_control's tasks "
+                                       f"(its host needs the same has_control as the workers): "
+                                       f"{_one_line(exc.__cause__ or exc)}") from None
                 raise ClusterError(f"dask spec {self.spec}: worker {worker} cannot run has_control: "
-                                   f"{type(exc).__name__}: {_first_line(exc)}") from None
+                                   f"{type(exc).__name__}: {_one_line(exc)}") from None
             if check_bits and not np.array_equal(scores, expected, equal_nan=True):
                 raise ClusterError(f"dask spec {self.spec}: worker {worker} computes other bits than this process "
                                    f"(has_control {info['has_control']}, numba {info['numba']}, NumPy "
@@ -292,7 +297,7 @@ class DaskBatch:
                                f"the last was {exc.last_worker.address}: see its log") from None
         except (OSError, CancelledError) as exc:             # OSError: CommClosedError, TimeoutError
             raise ClusterError(f"dask spec {self.spec}: lost the cluster ({type(exc).__name__}: "
-                               f"{_first_line(exc)})") from None
+                               f"{_one_line(exc)})") from None
         for (s, lo, hi), part in zip(tasks, parts):
             out[lo:hi, s] = part
         return out
