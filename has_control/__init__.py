@@ -9,7 +9,7 @@ from pathlib import Path
 #: Modules whose compiled functions call one another (params holds the index
 #: constants the kernels bake in).
 COMPILED_MODULES = ("jit", "params", "cdr", "wire", "topics", "actuator", "reference", "abc_controller", "cost",
-                    "episode", "loop")
+                    "noise", "episode", "loop")
 
 
 def _load_compiled_modules() -> None:

@@ -226,7 +226,9 @@ def cmd_reproduce(args) -> int:
 def cmd_stack(args) -> int:
     from . import quiet_interrupts
     with quiet_interrupts():                  # rclpy and the nodes' kernels load here
+        from .loop import warm_up
         from .nodes.stack import run_stack
+        warm_up()
     cfg = _load(args)
     gains = _gains_arg(args.gains) if args.gains else None
     if args.tune:

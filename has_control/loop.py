@@ -22,7 +22,7 @@ from numba import njit
 
 from .abc_controller import abc_law, adapt
 from .actuator import diverged, joint_state, valve_plant_step
-from .episode import put_trace_row
+from .episode import TRACE_COLUMNS, put_trace_row
 from .jit import KERNEL
 from .noise import measurement_noise
 from .reference import reference
@@ -143,3 +143,23 @@ def controller_sample(data, mem, gains, ap, cp, rp, sp, seed, dt, step_ns, comma
     mem[X3D_PREV] = x3d
     mem[HAS_PREV] = 1.0
     return i
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every sample function the nodes call,
+    for the argument types they pass, before anything joins the graph (and,
+    in ``has-control stack``, while Ctrl-C still ends the process quietly)."""
+    from .episode import EpisodeArrays
+    from .params import Config
+    cfg = Config()
+    arr = EpisodeArrays.from_config(cfg)
+    step_ns = int(round(cfg.episode.step * 1e9))
+    state, clock, scr = STATE_LAYOUT.buffer(), CLOCK_LAYOUT.buffer(), scratch()
+    x = np.append(arr.x0, 0.0)
+    encode_state(x, arr.plant, 0, step_ns, state, clock, scr)
+    plant_sample(x, 0.0, arr.plant, cfg.episode.step, cfg.episode.y_limit, 1, step_ns, state, clock, scr)
+    command_of(bytes(state), step_ns, scr)
+    controller_sample(bytes(state), np.zeros(CONTROLLER_MEMORY), np.array(cfg.gains.as_tuple()), arr.actuator,
+                      arr.adaptation, arr.reference, arr.sensor, arr.seed, cfg.episode.step, step_ns,
+                      COMMAND_LAYOUT.buffer(), CONTROLLER_STATE_LAYOUT.buffer(), REFERENCE_LAYOUT.buffer(),
+                      np.zeros((0, len(TRACE_COLUMNS))))

@@ -331,3 +331,20 @@ def test_scaling_model_of_the_bench():
     assert paper[(64, 1)]["tasks"] == 10                           # one block a task: all an iteration has
     assert paper[(512, 1)]["iteration_seconds"] == paper[(64, 1)]["iteration_seconds"]
     assert all(0 < r["efficiency"] <= 1 for r in rows)
+
+
+def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
+    """Issue #14's "done when": ``tune --scenarios config/scenarios.yaml --aggregate cvar:0.2
+    --dask local:2 --json`` gives the result it gives without --dask (a short run of it)."""
+    from has_control.cli import main
+    from has_control.config import CONFIG_DIR
+    args = ["tune", "--scenarios", str(CONFIG_DIR / "scenarios.yaml"), "--aggregate", "cvar:0.2",
+            "--particles", "16", "--iterations", "3", "--duration", "1.2", "--json"]
+    outs = []
+    for extra in ([], ["--dask", "local:2"]):
+        assert main(args + extra) == 0
+        out = capsys.readouterr().out
+        doc = __import__("json").loads(out)
+        doc.pop("seconds")
+        outs.append(doc)
+    assert outs[0] == outs[1] and outs[0]["scenarios"] == 20 and outs[0]["aggregate"] == "cvar:0.2"

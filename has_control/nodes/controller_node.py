@@ -41,7 +41,7 @@ from .. import loop
 from ..episode import TRACE_COLUMNS, EpisodeArrays
 from ..errors import ConfigError
 from ..topics import (COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE, CONTROLLER_STATE_LAYOUT, GAINS, GAINS_LAYOUT,
-                      REFERENCE, REFERENCE_LAYOUT, STATE, STATE_LAYOUT)
+                      REFERENCE, REFERENCE_LAYOUT, STATE)
 from ..wire import NOT_FINITE, get_stamp
 from .foxglove import node_tap
 from .messages import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
@@ -66,7 +66,7 @@ class ControllerNode(Node):
         self._apply(config_from_node(self, PREFIXES))
         self._pending = None
         self.reset()
-        self._warm_up()
+        loop.warm_up()                         # compile or load the step before joining the graph
         self.add_on_set_parameters_callback(self._on_set_parameters)
         tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         self.command_pub = self.create_publisher(JointState, COMMAND, CONTROL_QOS)
@@ -115,13 +115,6 @@ class ControllerNode(Node):
         """Keep rows 0..samples-1 of the run (TRACE_COLUMNS) in a preallocated array."""
         self.trace = np.full((samples, len(TRACE_COLUMNS)), np.nan)
         return self.trace
-
-    def _warm_up(self) -> None:
-        """Compile (or load) the step before joining the graph."""
-        mem = self._mem.copy()
-        loop.controller_sample(bytes(STATE_LAYOUT.template), mem, self._gains, self.ap, self.cp, self.rp,
-                               self.sp, self.seed, self.dt, self.step_ns, self._command, self._internals,
-                               self._reference, self.trace)
 
     # --- parameters --------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:

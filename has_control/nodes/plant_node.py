@@ -116,7 +116,7 @@ class PlantNode(Node):
         self._state_msg = STATE_LAYOUT.buffer()
         self._clock_msg = CLOCK_LAYOUT.buffer()
         self._scratch = loop.scratch()
-        self._warm_up()
+        loop.warm_up()                                # compile or load the step and decoder first
         tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos(CLOCK_TOPIC))
@@ -142,13 +142,6 @@ class PlantNode(Node):
             self._watchdog = self.create_timer(max(self.timeout / 4, 0.01), self._check_deadline)
             self._last_report = (time.monotonic(), 0)
             self.create_timer(1.0, self._report_lockstep)
-
-    def _warm_up(self) -> None:
-        """Compile (or load) the step and the decoder before joining the graph."""
-        x = self._initial_state()
-        loop.plant_sample(x, 0.0, self.ap, self.step_s, self.y_limit, 1, self.step_ns,
-                          self._state_msg, self._clock_msg, self._scratch)
-        loop.command_of(bytes(self._state_msg), self.step_ns, self._scratch)
 
     # --- parameters --------------------------------------------------------
     @staticmethod
