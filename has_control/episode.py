@@ -30,7 +30,7 @@ from .params import (
     A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_PLANT, N_SAMPLES, N_SENSOR, WIN_END, WIN_START,
     X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
 )
-from .reference import reference
+from .reference import reference, reference_array
 
 #: Columns of a trace, in order. Units: s, m, m, m/s, Pa, Pa, m, m, m/s, N, N·s/m, m³/(s·Pa).
 TRACE_COLUMNS = ("t", "x1d", "y", "ydot", "P1", "P2", "u", "e1", "e2", "e3", "a1_hat", "a2_hat")
@@ -287,7 +287,7 @@ class EpisodeArrays:
     @classmethod
     def from_config(cls, cfg: Config) -> "EpisodeArrays":
         return cls(cfg.actuator.as_array(), cfg.plant.as_array(cfg.actuator), cfg.adaptation.as_array(),
-                   cfg.reference.as_array(cfg.episode), cfg.noise.as_array(), int(cfg.noise.seed),
+                   reference_array(cfg.reference, cfg.episode), cfg.noise.as_array(), int(cfg.noise.seed),
                    cfg.episode.as_array(), cfg.plant.actuator(cfg.actuator).initial_state())
 
     def kernel_args(self) -> tuple:
@@ -352,7 +352,7 @@ def evaluate(gains, cfg: Config | None = None, metrics: bool = False, scenarios=
     """
     if scenarios is not None:
         from .scenarios import evaluate_scenarios
-        return evaluate_scenarios(gains, cfg or Config(), scenarios, aggregate)
+        return evaluate_scenarios(gains, cfg or Config(), scenarios, aggregate, evaluate_configs)
     out = evaluate_configs(gains, [cfg or Config()])[:, 0]
     return out.copy() if metrics else out[:, 0].copy()
 

@@ -147,10 +147,6 @@ class Noise:
     pressure_rod: float = 0.0
     seed: int = 0
 
-    @property
-    def active(self) -> bool:
-        return bool(self.position or self.velocity or self.pressure_cap or self.pressure_rod)
-
     def as_array(self) -> np.ndarray:
         return np.array([self.position, self.velocity, self.pressure_cap, self.pressure_rod], dtype=np.float64)
 
@@ -217,21 +213,13 @@ class Reference:
     cutoff: float = 2.0
     seed: int = 0
 
-    def as_array(self, episode: "Episode | None" = None) -> np.ndarray:
-        """The reference array; a road is tabulated on ``episode``'s grid (one
-        period of the profile: it repeats after the horizon)."""
-        head = np.array([
+    def as_array(self) -> np.ndarray:
+        """The reference array's header; a tabulated kind (road) needs its
+        table after it: :func:`has_control.reference.reference_array`."""
+        return np.array([
             float(REFERENCE_KINDS[self.kind]), self.amplitude, self.omega, self.offset,
             self.t0, self.rise, self.f0, self.f1, self.sweep, 0.0, 0.0,
         ], dtype=np.float64)
-        if self.kind != "road":
-            return head
-        from .road import road_table
-        episode = episode or Episode()
-        table = road_table(self, episode)
-        head[REF_ROWS] = len(table)
-        head[REF_TABLE_STEP] = episode.step
-        return np.concatenate([head, table.ravel()])
 
 
 @dataclass(frozen=True)

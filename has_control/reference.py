@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 from .jit import INLINE
 from .params import (
-    N_REFERENCE, REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE,
-    REF_ROAD, REF_ROWS, REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP,
+    N_REFERENCE, REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE, REF_ROAD,
+    REF_ROWS, REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP, Episode, Reference,
 )
 
 
@@ -65,3 +66,17 @@ def reference(rp, t):
         return (off + a * s, a * c * w, a * (-s * w * w + c * dw),
                 a * (-c * w * w * w - 3.0 * s * w * dw))
     return off, 0.0, 0.0, 0.0
+
+
+def reference_array(ref: Reference, episode: Episode) -> np.ndarray:
+    """The array :func:`reference` reads: the header of ``ref``, and for a
+    road its table on ``episode``'s grid (one period of the profile,
+    :func:`has_control.road.road_table`)."""
+    head = ref.as_array()
+    if ref.kind != "road":
+        return head
+    from .road import road_table
+    table = road_table(ref, episode)
+    head[REF_ROWS] = len(table)
+    head[REF_TABLE_STEP] = episode.step
+    return np.concatenate([head, table.ravel()])

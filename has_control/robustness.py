@@ -13,6 +13,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .episode import evaluate_configs
 from .json_numbers import to_json
 from .params import Config
 from .scenarios import Aggregate, Scenario, ScenarioScores, evaluate_scenarios
@@ -80,5 +81,5 @@ def robustness_table(gains: Sequence[Sequence[float]], labels: Sequence[str], cf
                      batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> RobustnessTable:
     """Score each gain set on every scenario over ``cfg``."""
     g = np.array([[float(v) for v in k] for k in gains])
-    scores = evaluate_scenarios(g, cfg, scenarios, aggregate, batch)
+    scores = evaluate_scenarios(g, cfg, scenarios, aggregate, batch or evaluate_configs)
     return RobustnessTable(tuple(labels), tuple(tuple(map(float, k)) for k in g), scores)

@@ -216,12 +216,11 @@ def scenario_configs(cfg: Config, scenarios: Sequence[Scenario]) -> list[Config]
     return [s.config(cfg) for s in scenarios]
 
 
-def evaluate_scenarios(gains, cfg: Config, scenarios: Sequence[Scenario], aggregate: Aggregate | str = "mean",
-                       batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> ScenarioScores:
+def evaluate_scenarios(gains, cfg: Config, scenarios: Sequence[Scenario], aggregate: Aggregate | str,
+                       batch: Callable[[np.ndarray, list], np.ndarray]) -> ScenarioScores:
     """Every gain set (P, 3) on every scenario over ``cfg``, by ``batch``
-    (:func:`~has_control.episode.evaluate_configs` or a Dask one; the same bits)."""
-    from .episode import evaluate_configs
+    (:func:`~has_control.episode.evaluate_configs`, which
+    ``episode.evaluate(..., scenarios=...)`` passes, or a Dask one: the same bits)."""
     agg = parse_aggregate(aggregate) if isinstance(aggregate, str) else aggregate
-    run = batch or evaluate_configs
-    metrics = run(gains, scenario_configs(cfg, scenarios))
+    metrics = batch(gains, scenario_configs(cfg, scenarios))
     return ScenarioScores(tuple(s.name for s in scenarios), metrics, agg)

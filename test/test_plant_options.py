@@ -19,7 +19,7 @@ from has_control.cost import score_arrays
 from has_control.episode import EpisodeArrays, evaluate, simulate, with_horizon
 from has_control.errors import ConfigError
 from has_control.params import Config, Episode, Plant, Reference
-from has_control.reference import reference
+from has_control.reference import reference, reference_array
 from has_control.road import road_rms, road_table
 
 OPTIONS = {"plant.mass": 1650.0, "plant.bulk_modulus": 6.0e8, "plant.leakage": 1.0e-12,
@@ -160,7 +160,7 @@ def test_road_profile_has_its_class_power_its_derivatives_and_repeats():
         fd = (table[2:, order] - table[:-2, order]) / (2 * dt)
         scale = np.max(np.abs(table[:, order + 1]))
         assert np.max(np.abs(fd - table[1:-1, order + 1])) < 1e-3 * scale
-    rp = c.as_array(ep)
+    rp = reference_array(c, ep)
     assert reference(rp, 17 * dt) == reference(rp, (17 + ep.samples) * dt) == tuple(table[17])
 
 

@@ -104,7 +104,7 @@ def test_scenario_evaluation_is_each_scenario_evaluated_alone(small):
 
 def test_nominal_scenario_is_the_nominal_episode():
     cfg = _cfg()
-    res = evaluate_scenarios(GAINS, cfg, [Scenario("nominal")], "max")
+    res = evaluate_scenarios(GAINS, cfg, [Scenario("nominal")], "max", evaluate_configs)
     np.testing.assert_array_equal(res.robust, evaluate(GAINS, cfg))
 
 
@@ -114,7 +114,7 @@ def test_robust_tuning_resumes_to_the_same_result(small, tmp_path):
                          aggregate=parse_aggregate("cvar:0.5"))
     whole = tune(cfg, t)
     assert whole.as_json()["scenarios"] == 6 and whole.as_json()["aggregate"] == "cvar:0.5"
-    sc = evaluate_scenarios(np.array([whole.gains]), cfg, t.scenarios, t.aggregate)
+    sc = evaluate_scenarios(np.array([whole.gains]), cfg, t.scenarios, t.aggregate, evaluate_configs)
     assert sc.robust[0] == whole.result.fun
 
     def stop_after_two(swarm):
@@ -144,7 +144,7 @@ def test_cli_robustness_prints_writes_and_plots(small, tmp_path, capsys):
     assert main(args + ["--json", "--plot", str(tmp_path / "r.png"), "--markdown", str(tmp_path / "r.md")]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert doc["labels"] == ["paper", "k = (150, 158, 162)"] and len(doc["J"][0]) == 6
-    res = evaluate_scenarios(GAINS[:2], _cfg(), load_scenarios(small), "cvar:0.2")
+    res = evaluate_scenarios(GAINS[:2], _cfg(), load_scenarios(small), "cvar:0.2", evaluate_configs)
     assert doc["J"][1] == [float(v) for v in res.costs[1]]
     assert doc["summary"]["paper"]["cvar:0.2"] == res.robust[0]
     assert (tmp_path / "r.png").stat().st_size > 1000 and "| heavy-laggy |" in (tmp_path / "r.md").read_text()
