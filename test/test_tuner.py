@@ -139,3 +139,28 @@ def test_graph_lanes_in_separate_processes_equal_the_batch_evaluator(domain_id, 
     assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun
     assert out["history"] == [h.best_cost for h in ref.result.history]
     assert len(list((rec / "episodes").iterdir())) == 6                 # every candidate ran through a lane
+
+
+def test_the_tuner_node_tunes_on_scenarios_as_the_library_does(domain_id, tmp_path):
+    from has_control.config import CONFIG_DIR
+    from has_control.scenarios import load_scenarios, parse_aggregate
+    cfg = with_horizon(Config(), 1.5)
+    path = CONFIG_DIR / "scenarios.yaml"
+    out = run_tuning_stack(cfg, {"iterations": 2, "particles": 8}, validate_best=False, domain_id=domain_id,
+                           scenarios=str(path), aggregate="cvar:0.2")
+    ref = tune(cfg, load_tuning().replace(iterations=2, particles=8, scenarios=load_scenarios(path, cfg),
+                                          aggregate=parse_aggregate("cvar:0.2")))
+    assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun and out["scenarios"] == 20
+
+
+@pytest.mark.parametrize("params,culprit", [
+    (["-p", "scenarios:=/nonexistent.yaml"], "/nonexistent.yaml"),
+    (["-p", "scenarios:=" + "config/scenarios.yaml", "-p", "aggregate:=cvar:2"], "cvar:2"),
+    (["-p", "scenarios:=config/scenarios.yaml", "-p", "evaluator:=graph"], "needs evaluator batch"),
+])
+def test_bad_tuner_scenarios_are_one_line(domain_id, params, culprit):
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tuner", "--ros-args", *params],
+                       capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
+    assert r.returncode == 2 and culprit in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1, r.stderr

@@ -268,12 +268,14 @@ def _wait_for_match(executor, plant, controller, timeout: float = 10.0) -> None:
 def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str = "batch",
                      namespaces: list[str] | None = None, record: str | None = None,
                      validate_best: bool = True, context: rclpy.Context | None = None,
-                     domain_id: int | None = None, timeout: float = 3600.0, log_every: int = 1) -> dict:
+                     domain_id: int | None = None, timeout: float = 3600.0, log_every: int = 1,
+                     scenarios: str | None = None, aggregate: str = "mean") -> dict:
     """Plant and controller (one pair per namespace) and the tuner node in one
     process on the EventsExecutor; returns the tuner's result dict.
 
     ``changes``: swarm settings (seed, particles, iterations, variant) over
-    config/tuner.yaml and ``config_files``.
+    config/tuner.yaml and ``config_files``. ``scenarios``: a scenario file
+    (robust tuning, batch evaluator) scored by ``aggregate``.
     """
     from ..tuning import load_tuning
     from ..tuning import tuning_parameters
@@ -290,7 +292,8 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
             Parameter(k, value=v) for k, v in tuning_parameters(tuning).items()] + [
             Parameter("evaluator", value=evaluator), Parameter("lanes", value=list(namespaces)),
             Parameter("validate_best", value=validate_best), Parameter("record", value=record or ""),
-            Parameter("log_every", value=log_every)])
+            Parameter("log_every", value=log_every), Parameter("scenarios", value=str(scenarios or "")),
+            Parameter("aggregate", value=aggregate)])
         nodes.append(tuner)
         executor = EventsExecutor(context=context)
         for node in nodes:

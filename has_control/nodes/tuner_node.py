@@ -16,7 +16,9 @@ and scored from the bag.
 Parameters: ``swarm.*`` (config/tuner.yaml), the model and episode
 (``actuator.*``, ``simulation.*``, ``cost.*``, ``metrics.*``, ...; the same
 files as plant and controller), ``evaluator`` (graph | batch),
-``validate_best``, ``lanes`` (namespaces; ``[""]`` is the root), ``controller``
+``validate_best``, ``scenarios`` (robust tuning: a scenario file, scored with the batch
+evaluator; empty: the nominal episode) and ``aggregate`` (mean | max | cvar:α),
+``lanes`` (namespaces; ``[""]`` is the root), ``controller``
 and ``plant`` (node names within a lane), ``record`` (a directory: the
 session bag ``record/session``, the best gains as a ``--params-file``
 ``record/gains.yaml`` and, for graph evaluation, one bag per episode under
@@ -48,10 +50,10 @@ from ..bag import BagError, score_bag
 from ..errors import ConfigError, HasControlError
 from ..swarm import Swarm
 from ..tuning import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
-from .parameters import config_from_node, declare_config
+from .parameters import config_from_node, declare_config, declare_plant_overrides
 from .recorder import Recorder
 
-PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.")
+PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.", "plant.", "noise.")
 EVALUATORS = ("graph", "batch")
 
 
@@ -142,8 +144,11 @@ class TunerNode(Node):
     def __init__(self, name: str = "tuner", **kwargs):
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES)
+        declare_plant_overrides(self)
         for key, value in tuning_parameters(load_tuning()).items():
             self.declare_parameter(key, value)
+        self.declare_parameter("scenarios", "")
+        self.declare_parameter("aggregate", "mean")
         self.declare_parameter("evaluator", "batch")
         self.declare_parameter("validate_best", True)
         self.declare_parameter("lanes", [""])
@@ -158,6 +163,7 @@ class TunerNode(Node):
         self.evaluator = self.get_parameter("evaluator").value
         if self.evaluator not in EVALUATORS:
             raise ConfigError(f"parameter evaluator = {self.evaluator!r}: expected one of {', '.join(EVALUATORS)}")
+        self.tuning = self._robust(self.tuning)
         lanes = list(self.get_parameter("lanes").value) or [""]
         self.lanes = [Lane(self, ns, self.get_parameter("controller").value,
                            self.get_parameter("plant").value, self.cfg.episode.y_limit) for ns in lanes]
@@ -171,6 +177,20 @@ class TunerNode(Node):
         flat = {f"swarm.{k}": p.value for k, p in self.get_parameters_by_prefix("swarm").items()}
         flat = {k: (list(v) if hasattr(v, "tolist") or isinstance(v, (list, tuple)) else v) for k, v in flat.items()}
         return tuning_from_parameters(flat, {k: f"parameter {k} of {self.get_fully_qualified_name()}" for k in flat})
+
+    def _robust(self, tuning: Tuning) -> Tuning:
+        """``tuning`` scored on the scenarios of parameter ``scenarios`` (a file; empty: the nominal episode)."""
+        from ..scenarios import load_scenarios, parse_aggregate
+        path, how = self.get_parameter("scenarios").value, self.get_parameter("aggregate").value
+        if not path:
+            return tuning
+        if self.evaluator == "graph":
+            raise ConfigError(f"parameter scenarios = {path!r}: needs evaluator batch (the lanes run one plant)")
+        try:
+            aggregate = parse_aggregate(how)
+        except ConfigError as exc:
+            raise ConfigError(f"parameter {exc}") from None
+        return tuning.replace(scenarios=load_scenarios(path, self.cfg), aggregate=aggregate)
 
     # --- session -------------------------------------------------------------
     def start(self) -> None:
