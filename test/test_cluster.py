@@ -348,3 +348,23 @@ def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
         doc.pop("seconds")
         outs.append(doc)
     assert outs[0] == outs[1] and outs[0]["scenarios"] == 20 and outs[0]["aggregate"] == "cvar:0.2"
+
+
+def test_a_session_started_on_dask_resumes_locally_to_the_same_result(tmp_path):
+    """Sessions stay resumable: the evaluator is not part of the result, so a
+    session interrupted on a cluster finishes in-process with the same bits."""
+    from has_control.scenarios import Scenario, parse_aggregate
+    from has_control.session import run_session
+    cfg = build_config({"simulation.horizon": 1.2}, base=Config())
+    t = Tuning().replace(particles=8, iterations=4, aggregate=parse_aggregate("max"),
+                         scenarios=(Scenario("nominal"), Scenario("heavy", (("plant.mass", 1800.0),))))
+    whole = tune(cfg, t)
+
+    def stop_after_two(swarm):
+        if swarm.iteration == 2:
+            raise KeyboardInterrupt
+    with dask_batch("local:2") as batch, pytest.raises(KeyboardInterrupt):
+        run_session(cfg, t, tmp_path / "s", on_iteration=stop_after_two, batch=batch, evaluator="dask")
+    resumed = run_session(None, None, resume_dir=tmp_path / "s")
+    assert resumed.result.gains == whole.gains and resumed.result.result.fun == whole.result.fun
+    assert [h.best_cost for h in resumed.result.result.history] == [h.best_cost for h in whole.result.history]
