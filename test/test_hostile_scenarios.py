@@ -2,8 +2,13 @@
 aggregates stored in a session, and the plant options reaching every node."""
 from __future__ import annotations
 
-import pytest
+import re
 
+import pytest
+from rclpy.parameter import Parameter
+
+from has_control.cli import main
+from has_control.config import load_config
 from has_control.errors import ConfigError
 from has_control.scenarios import load_scenarios
 
@@ -19,3 +24,30 @@ def test_scenario_files_with_odd_keys_or_huge_numbers_are_one_line(tmp_path, bod
     with pytest.raises(ConfigError) as err:
         load_scenarios(p)
     assert "\n" not in str(err.value) and str(p) in str(err.value) and culprit in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("road,culprit", [
+    ("{kind: road, speed: 1.0e300}", "reference.cutoff = 2.0: no road component"),
+    ("{kind: road, cutoff: 1.0e20}", "reference.cutoff = 1e+20: must be below the Nyquist"),
+    ("{kind: road, speed: 1.0e308, cutoff: 1.0}", "reference.cutoff = 1.0: no road component"),
+])
+def test_road_parameters_far_out_of_range_are_one_line(tmp_path, capsys, road, culprit):
+    p = tmp_path / "p.yaml"
+    p.write_text(f"/**:\n  ros__parameters:\n    reference: {road}\n    simulation: {{horizon: 1000.0}}\n")
+    with pytest.raises(ConfigError, match=re.escape(culprit)):
+        load_config([p])
+    assert main(["simulate", "--config", str(p)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and culprit in err, err
+
+
+def test_controller_rejects_a_road_it_cannot_build_and_keeps_the_old_reference(context):
+    from has_control.nodes.controller_node import ControllerNode
+    node = ControllerNode(context=context)
+    try:
+        res = node.set_parameters_atomically([Parameter("reference.kind", value="road"),
+                                              Parameter("reference.speed", value=1.0e300)])
+        assert not res.successful and "reference.cutoff" in res.reason
+        assert node.get_parameter("reference.kind").value == "sine" and node._pending is None
+    finally:
+        node.destroy_node()
