@@ -51,3 +51,13 @@ def test_controller_rejects_a_road_it_cannot_build_and_keeps_the_old_reference(c
         assert node.get_parameter("reference.kind").value == "sine" and node._pending is None
     finally:
         node.destroy_node()
+
+
+def test_robustness_refuses_one_label_for_two_gain_sets(tmp_path, capsys):
+    p = tmp_path / "s.yaml"
+    p.write_text("scenarios:\n  nominal: {}\n")
+    args = ["robustness", "--scenarios", str(p), "--duration", "1.2", "--gains", "400", "400", "400",
+            "--label", "a", "--gains", "150", "158", "162", "--label", "a"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "'a'" in err, err
