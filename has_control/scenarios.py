@@ -156,7 +156,12 @@ class Aggregate:
     alpha: float = 1.0
 
     def __str__(self) -> str:
-        return f"cvar:{self.alpha:g}" if self.kind == "cvar" else self.kind
+        """``mean``, ``max`` or ``cvar:α``; α as short as :func:`parse_aggregate` reads it back exactly
+        (a session stores this: a rounded α could change the tail's size ⌈α·S⌉ on resume)."""
+        if self.kind != "cvar":
+            return self.kind
+        short = f"{self.alpha:g}"
+        return f"cvar:{short if float(short) == self.alpha else repr(float(self.alpha))}"
 
     def __call__(self, costs: np.ndarray) -> np.ndarray:
         """(P, S) costs → (P,) aggregates."""

@@ -10,7 +10,8 @@ from rclpy.parameter import Parameter
 from has_control.cli import main
 from has_control.config import load_config
 from has_control.errors import ConfigError
-from has_control.scenarios import load_scenarios
+from has_control.scenarios import Aggregate, Scenario, load_scenarios, parse_aggregate
+from has_control.tuning import Tuning, tuning_from_json, tuning_json
 
 
 @pytest.mark.parametrize("body,culprit", [
@@ -61,3 +62,11 @@ def test_robustness_refuses_one_label_for_two_gain_sets(tmp_path, capsys):
     assert main(args) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "'a'" in err, err
+
+
+def test_a_stored_aggregate_is_the_aggregate_bit_for_bit():
+    for agg in (Aggregate("cvar", 0.2000001), Aggregate("cvar", 0.1 + 0.2), Aggregate("cvar", 1 / 3)):
+        assert parse_aggregate(str(agg)) == agg
+        t = Tuning().replace(scenarios=(Scenario("a"),), aggregate=agg)
+        assert tuning_from_json(tuning_json(t)).aggregate == agg
+    assert str(Aggregate("cvar", 0.2)) == "cvar:0.2" and str(Aggregate("cvar", 1.0)) == "cvar:1"
