@@ -70,3 +70,16 @@ def test_a_stored_aggregate_is_the_aggregate_bit_for_bit():
         t = Tuning().replace(scenarios=(Scenario("a"),), aggregate=agg)
         assert tuning_from_json(tuning_json(t)).aggregate == agg
     assert str(Aggregate("cvar", 0.2)) == "cvar:0.2" and str(Aggregate("cvar", 1.0)) == "cvar:1"
+
+
+def test_a_session_with_damaged_scenarios_is_one_line(tmp_path, monkeypatch):
+    import has_control.session as session
+    from has_control.bag import BagError
+    from has_control.params import Config
+
+    def damaged(t):
+        return dict(tuning_json(t), scenarios=[{"name": "a", "overrides": [1, 2]}], aggregate="mean")
+    monkeypatch.setattr(session, "tuning_json", damaged)
+    session.Session(tmp_path / "s", Tuning(), Config()).close()
+    with pytest.raises(BagError, match="cannot resume"):
+        session.resume(tmp_path / "s")
