@@ -15,7 +15,8 @@ and scored from the bag.
 
 Parameters: ``swarm.*`` (config/tuner.yaml), the model and episode
 (``actuator.*``, ``simulation.*``, ``cost.*``, ``metrics.*``, ...; the same
-files as plant and controller), ``evaluator`` (graph | batch),
+files as plant and controller) and the world the batch evaluator simulates
+and the bags record (``plant.*``, ``noise.*``, as plant and controller take them), ``evaluator`` (graph | batch),
 ``validate_best``, ``lanes`` (namespaces; ``[""]`` is the root), ``controller``
 and ``plant`` (node names within a lane), ``record`` (a directory: the
 session bag ``record/session``, the best gains as a ``--params-file``
@@ -48,10 +49,10 @@ from ..bag import BagError, score_bag
 from ..errors import ConfigError, HasControlError
 from ..swarm import Swarm
 from ..tuning import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
-from .parameters import config_from_node, declare_config
+from .parameters import config_from_node, declare_config, declare_plant_overrides
 from .recorder import Recorder
 
-PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.")
+PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.", "plant.", "noise.")
 EVALUATORS = ("graph", "batch")
 
 
@@ -142,6 +143,7 @@ class TunerNode(Node):
     def __init__(self, name: str = "tuner", **kwargs):
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES)
+        declare_plant_overrides(self)                 # plant.mass etc.: the plant's, as the plant node has them
         for key, value in tuning_parameters(load_tuning()).items():
             self.declare_parameter(key, value)
         self.declare_parameter("evaluator", "batch")
