@@ -117,7 +117,9 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
         raise ConfigError(f"{where}.count = {shown(count)}: expected a whole number in 1..{MAX_SCENARIOS}")
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < SEED_LIMIT:
         raise ConfigError(f"{where}.seed = {shown(seed)}: expected a whole number in [0, 2^63)")
-    prefix = str(spec.get("prefix", "random"))
+    prefix = spec.get("prefix", "random")
+    if not isinstance(prefix, str) or not prefix:
+        raise ConfigError(f"{where}.prefix = {shown(prefix)}: expected a name (the draws are PREFIX-000, ...)")
     ranges = flatten(spec.get("ranges") or {}) if isinstance(spec.get("ranges") or {}, Mapping) else None
     fixed = flatten(spec.get("set") or {}) if isinstance(spec.get("set") or {}, Mapping) else None
     if ranges is None or fixed is None:

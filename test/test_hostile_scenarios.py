@@ -18,6 +18,8 @@ from has_control.tuning import Tuning, tuning_from_json, tuning_json
     ("1: x\nfoo: y\n", "not 1, foo"),
     ("random: {count: 2, 1: 2, foo: 3}\n", "random.1: unknown key"),
     ("random: {count: 2, ranges: {plant.mass: [1, " + "9" * 400 + "]}}\n", "random.ranges.plant.mass"),
+    ("random: {count: 2, prefix: [a]}\n", "random.prefix = ['a']"),
+    ("random: {count: 2, prefix: }\n", "random.prefix = None"),
 ])
 def test_scenario_files_with_odd_keys_or_huge_numbers_are_one_line(tmp_path, body, culprit):
     p = tmp_path / "s.yaml"
