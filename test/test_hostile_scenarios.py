@@ -112,3 +112,15 @@ def test_stack_tuning_with_plant_options_scores_what_the_graph_runs(domain_id):
     out = run_tuning_stack(cfg, {"iterations": 2, "particles": 3}, evaluator="batch", domain_id=domain_id)
     ref = tune(cfg, load_tuning().replace(iterations=2, particles=3))
     assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun == out["validation"]["J"]
+
+
+@pytest.mark.parametrize("command", [["robustness", "--gains", "400", "400", "400"], ["simulate"]])
+def test_a_figure_format_matplotlib_cannot_write_is_one_line_before_any_run(tmp_path, capsys, command):
+    p = tmp_path / "s.yaml"
+    p.write_text("scenarios:\n  nominal: {}\n")
+    extra = ["--scenarios", str(p)] if command[0] == "robustness" else []
+    with pytest.raises(SystemExit) as status:                   # argparse: before anything runs
+        main([*command, *extra, "--duration", "1.2", "--plot", str(tmp_path / "r.txt")])
+    assert status.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "r.txt" in err and "png" in err, err
