@@ -380,6 +380,17 @@ def _port(text: str) -> int:
     return v
 
 
+def _figure_path(text: str) -> str:
+    """An argparse type: a figure file whose format matplotlib writes (checked before the run)."""
+    from .errors import HasControlError
+    from .plots import figure_format
+    try:
+        figure_format(text)
+    except HasControlError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def _dask_spec(text: str) -> str:
     """An argparse type: ``local:N`` or ``tcp://HOST:PORT`` (checked by :mod:`has_control.cluster`)."""
     from .cluster import parse_spec
@@ -405,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", action="append", metavar="FILE",
                    help="ros__parameters YAML overriding the shipped config (repeatable)")
     s.add_argument("--json", action="store_true", help="print one JSON object")
-    s.add_argument("--plot", metavar="FILE.png", help="write tracking and error figures")
+    s.add_argument("--plot", type=_figure_path, metavar="FILE.png", help="write tracking and error figures")
     s.add_argument("--trace", metavar="FILE.csv", help="write the time series")
     s.set_defaults(func=cmd_simulate)
 
@@ -443,7 +454,7 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
     rb.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
     rb.add_argument("--dask", type=_dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
-    rb.add_argument("--plot", metavar="FILE.png", help="write J and e_max per scenario as a figure")
+    rb.add_argument("--plot", type=_figure_path, metavar="FILE.png", help="write J and e_max per scenario as a figure")
     rb.add_argument("--markdown", metavar="FILE.md", help="write the table as Markdown")
     rb.add_argument("--json", action="store_true", help="print one JSON object")
     rb.set_defaults(func=cmd_robustness)

@@ -421,13 +421,13 @@ def _check_plant(cfg: Config, fail) -> None:
              f"must be 0 (an ideal valve) or at least simulation.step ({ep.step:g} s), for the RK4 step")
     if ref.kind == "road":
         from .road import road_components
+        if ref.cutoff >= 0.5 / ep.step:        # first: it bounds the number of components
+            fail("reference.cutoff", ref.cutoff, f"must be below the Nyquist frequency {0.5 / ep.step:g} Hz")
         f, _, _ = road_components(ref, ep.samples * ep.step)
         if len(f) == 0:
             fail("reference.cutoff", ref.cutoff,
                  f"no road component between the band's lower edge and the cutoff (at {ref.speed:g} m/s over a "
                  f"{ep.samples * ep.step:g} s period); raise the cutoff or the speed")
-        if ref.cutoff >= 0.5 / ep.step:
-            fail("reference.cutoff", ref.cutoff, f"must be below the Nyquist frequency {0.5 / ep.step:g} Hz")
 
 
 def default_config_files() -> list[Path]:

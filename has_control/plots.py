@@ -62,11 +62,25 @@ def plot_gains(result, path: str | Path, title: str = "") -> Path:
     return _save(fig, path)
 
 
+def figure_format(path: str | Path) -> str:
+    """The format of a figure file, its suffix (none: png); one line naming
+    ``path`` if matplotlib writes no such format."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    from .errors import HasControlError
+    fmt = Path(path).suffix[1:].lower() or "png"
+    known = FigureCanvasBase.get_supported_filetypes()
+    if fmt not in known:
+        raise HasControlError(f"{path}: a figure cannot be written as '{fmt}' (one of {', '.join(sorted(known))})")
+    return fmt
+
+
 def _save(fig, path) -> Path:
     """Write the figure (then rename: never half a PNG) and close it."""
     from .files import write_atomic
     try:
-        return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format=Path(path).suffix[1:] or "png"))
+        fmt = figure_format(path)
+        return write_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110, format=fmt))
     finally:
         plt.close(fig)
 

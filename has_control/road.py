@@ -40,7 +40,10 @@ def road_components(ref: Reference, period: float) -> tuple[np.ndarray, np.ndarr
     """(f_k [Hz], A_k [m], φ_k [rad]) of the profile for one period [s]."""
     df = 1.0 / period
     low = max(N_MIN * ref.speed, df)
-    k = np.arange(math.ceil(low / df - 1e-9), math.floor(ref.cutoff / df + 1e-9) + 1)
+    if low > ref.cutoff:                       # no harmonic in the band (and no huge or infinite k to count to)
+        k = np.arange(0)
+    else:
+        k = np.arange(math.ceil(low / df - 1e-9), math.floor(ref.cutoff / df + 1e-9) + 1)
     f = k * df
     n = f / ref.speed
     psd = ROAD_CLASSES[ref.road_class] * (n / N0) ** -2 / ref.speed      # G(f) [m²/Hz]

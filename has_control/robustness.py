@@ -14,6 +14,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .episode import evaluate_configs
+from .errors import ConfigError
 from .json_numbers import to_json
 from .params import Config
 from .scenarios import Aggregate, Scenario, ScenarioScores, evaluate_scenarios
@@ -79,7 +80,12 @@ def _num(v: float) -> str:
 def robustness_table(gains: Sequence[Sequence[float]], labels: Sequence[str], cfg: Config,
                      scenarios: Sequence[Scenario], aggregate: Aggregate,
                      batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> RobustnessTable:
-    """Score each gain set on every scenario over ``cfg``."""
+    """Score each gain set on every scenario over ``cfg`` (each under a label of its own)."""
+    if len(labels) != len(gains):
+        raise ConfigError(f"{len(labels)} labels for {len(gains)} gain sets: one label each")
+    dup = next((lab for i, lab in enumerate(labels) if lab in labels[:i]), None)
+    if dup is not None:
+        raise ConfigError(f"label {dup!r}: names two gain sets; give each --gains a --label of its own")
     g = np.array([[float(v) for v in k] for k in gains])
     scores = evaluate_scenarios(g, cfg, scenarios, aggregate, batch or evaluate_configs)
     return RobustnessTable(tuple(labels), tuple(tuple(map(float, k)) for k in g), scores)

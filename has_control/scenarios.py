@@ -31,7 +31,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from .config import MAX_CONFIG_BYTES, SEED_LIMIT, build_config, flatten, load_yaml
+from .config import MAX_CONFIG_BYTES, SEED_LIMIT, build_config, finite_number, flatten, load_yaml
 from .errors import ConfigError, shown
 from .files import read_text
 from .params import Config
@@ -68,7 +68,7 @@ def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenar
     path = Path(path)
     doc = load_yaml(read_text(path, MAX_CONFIG_BYTES, ConfigError), str(path))
     if not isinstance(doc, Mapping) or not doc or set(doc) - {"scenarios", "random"}:
-        extra = sorted(set(doc) - {"scenarios", "random"}) if isinstance(doc, Mapping) else []
+        extra = sorted(set(doc) - {"scenarios", "random"}, key=str) if isinstance(doc, Mapping) else []
         raise ConfigError(f"{path}: expected a mapping with 'scenarios' and/or 'random'"
                           + (f", not {', '.join(map(str, extra))}" if extra else ""))
     out: list[Scenario] = []
@@ -109,7 +109,7 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     where = f"{path}: random"
     if not isinstance(spec, Mapping):
         raise ConfigError(f"{where}: expected a mapping with count, seed and ranges")
-    unknown = sorted(set(spec) - {"count", "seed", "prefix", "ranges", "set"})
+    unknown = sorted(set(spec) - {"count", "seed", "prefix", "ranges", "set"}, key=str)
     if unknown:
         raise ConfigError(f"{where}.{unknown[0]}: unknown key (count, seed, prefix, ranges, set)")
     count, seed = spec.get("count"), spec.get("seed", 0)
@@ -117,7 +117,9 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
         raise ConfigError(f"{where}.count = {shown(count)}: expected a whole number in 1..{MAX_SCENARIOS}")
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < SEED_LIMIT:
         raise ConfigError(f"{where}.seed = {shown(seed)}: expected a whole number in [0, 2^63)")
-    prefix = str(spec.get("prefix", "random"))
+    prefix = spec.get("prefix", "random")
+    if not isinstance(prefix, str) or not prefix:
+        raise ConfigError(f"{where}.prefix = {shown(prefix)}: expected a name (the draws are PREFIX-000, ...)")
     ranges = flatten(spec.get("ranges") or {}) if isinstance(spec.get("ranges") or {}, Mapping) else None
     fixed = flatten(spec.get("set") or {}) if isinstance(spec.get("set") or {}, Mapping) else None
     if ranges is None or fixed is None:
@@ -128,7 +130,7 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     for key in sorted(ranges):
         r = ranges[key]
         ok = isinstance(r, (list, tuple)) and len(r) == 2 and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in r) and r[0] <= r[1]
+            not isinstance(finite_number(v), str) for v in r) and r[0] <= r[1]
         if not ok:
             raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: expected [low, high], "
                               "two finite numbers, low <= high")
@@ -156,7 +158,12 @@ class Aggregate:
     alpha: float = 1.0
 
     def __str__(self) -> str:
-        return f"cvar:{self.alpha:g}" if self.kind == "cvar" else self.kind
+        """``mean``, ``max`` or ``cvar:α``; α as short as :func:`parse_aggregate` reads it back exactly
+        (a session stores this: a rounded α could change the tail's size ⌈α·S⌉ on resume)."""
+        if self.kind != "cvar":
+            return self.kind
+        short = f"{self.alpha:g}"
+        return f"cvar:{short if float(short) == self.alpha else repr(float(self.alpha))}"
 
     def __call__(self, costs: np.ndarray) -> np.ndarray:
         """(P, S) costs → (P,) aggregates."""

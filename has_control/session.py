@@ -160,7 +160,7 @@ def resume(directory: str | Path, on_warning=warn) -> Resumed:
     s = _json(settings[0][1]) if settings else None
     try:
         tuning = tuning_from_json(s["tuning"])
-    except (TypeError, KeyError, ValueError):
+    except (TypeError, KeyError, ValueError, AttributeError):
         lock.release()
         raise BagError(f"{old}: no readable {SETTINGS} message; cannot resume") from None
     cfg = build_config(s.get("parameters") or {}, source=f"{old} ({SETTINGS})")

@@ -15,9 +15,11 @@ and scored from the bag.
 
 Parameters: ``swarm.*`` (config/tuner.yaml), the model and episode
 (``actuator.*``, ``simulation.*``, ``cost.*``, ``metrics.*``, ...; the same
-files as plant and controller), ``evaluator`` (graph | batch),
-``validate_best``, ``scenarios`` (robust tuning: a scenario file, scored with the batch
-evaluator; empty: the nominal episode) and ``aggregate`` (mean | max | cvar:α),
+files as plant and controller) and the world the batch evaluator simulates
+and the bags record (``plant.*``, ``noise.*``, as plant and controller take
+them), ``evaluator`` (graph | batch), ``validate_best``, ``scenarios`` (robust
+tuning: a scenario file, scored with the batch evaluator; empty: the nominal
+episode) and ``aggregate`` (mean | max | cvar:α),
 ``lanes`` (namespaces; ``[""]`` is the root), ``controller``
 and ``plant`` (node names within a lane), ``record`` (a directory: the
 session bag ``record/session``, the best gains as a ``--params-file``
@@ -144,7 +146,7 @@ class TunerNode(Node):
     def __init__(self, name: str = "tuner", **kwargs):
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES)
-        declare_plant_overrides(self)
+        declare_plant_overrides(self)                 # plant.mass etc.: the plant's, as the plant node has them
         for key, value in tuning_parameters(load_tuning()).items():
             self.declare_parameter(key, value)
         self.declare_parameter("scenarios", "")
