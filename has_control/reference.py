@@ -7,6 +7,7 @@ grid and periodic after it).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -68,6 +69,14 @@ def reference(rp, t):
     return off, 0.0, 0.0, 0.0
 
 
+@functools.lru_cache(maxsize=32)
+def _road_table(ref: Reference, episode: Episode) -> np.ndarray:
+    """:func:`has_control.road.road_table`, built once per (reference, grid):
+    every evaluation of a swarm iteration asks for the same tables."""
+    from .road import road_table
+    return road_table(ref, episode)
+
+
 def reference_array(ref: Reference, episode: Episode) -> np.ndarray:
     """The array :func:`reference` reads: the header of ``ref``, and for a
     road its table on ``episode``'s grid (one period of the profile,
@@ -75,8 +84,7 @@ def reference_array(ref: Reference, episode: Episode) -> np.ndarray:
     head = ref.as_array()
     if ref.kind != "road":
         return head
-    from .road import road_table
-    table = road_table(ref, episode)
+    table = _road_table(ref, episode)
     head[REF_ROWS] = len(table)
     head[REF_TABLE_STEP] = episode.step
     return np.concatenate([head, table.ravel()])

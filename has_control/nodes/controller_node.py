@@ -82,9 +82,9 @@ class ControllerNode(Node):
         trigger_service(self, "~/reset", self.reset, "estimates reset to adaptation.initial")
         self.publish_internals = bool(self.get_parameter("publish_internals").value)
 
-    def _apply(self, cfg) -> None:
+    def _apply(self, cfg, arr: EpisodeArrays | None = None) -> None:
         self.cfg = cfg
-        arr = EpisodeArrays.from_config(cfg)
+        arr = arr or EpisodeArrays.from_config(cfg)
         self.ap, self.cp, self.rp = arr.actuator, arr.adaptation, arr.reference
         self.sp, self.seed = arr.sensor, arr.seed
         self.k = cfg.gains.as_tuple()
@@ -127,7 +127,7 @@ class ControllerNode(Node):
             reason = str(exc)
             self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
             return SetParametersResult(successful=False, reason=reason)
-        self._pending = cfg                      # applies from the next sample
+        self._pending = (cfg, EpisodeArrays.from_config(cfg))    # built here (a road's table), applied next sample
         return SetParametersResult(successful=True)
 
     # --- control loop: read -> update -> write --------------------------------
@@ -149,7 +149,7 @@ class ControllerNode(Node):
                 f"{self.count_publishers(self._state_topic)} publishers on {self._state_topic}; "
                 f"{self.conflicts} conflicting states so far", throttle_duration_sec=5.0)
         if self._pending is not None:
-            self._apply(self._pending)
+            self._apply(*self._pending)
             self._pending = None
             self._announce = True
         i = loop.controller_sample(data, self._mem, self._gains, self.ap, self.cp, self.rp, self.sp, self.seed,
