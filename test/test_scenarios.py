@@ -69,6 +69,11 @@ def test_the_shipped_sets_load():
     ("scenarios:\n  a: {}\n  b: 3\n", "scenario b: expected a mapping"),
     ("scenarios:\n  d-0: {}\nrandom: {count: 1, prefix: d}\n", "scenario d-0: named twice"),
     ("scenarios: {}\n", "no scenarios"),
+    ("1: x\nfoo: y\n", "not 1, foo"),                                   # keys of mixed types
+    ("random: {count: 2, 1: 2, foo: 3}\n", "random.1: unknown key"),
+    ("random: {count: 2, ranges: {plant.mass: [1, " + "9" * 400 + "]}}\n", "random.ranges.plant.mass"),
+    ("random: {count: 2, prefix: [a]}\n", "random.prefix = ['a']"),
+    ("random: {count: 2, prefix: }\n", "random.prefix = None"),
 ])
 def test_bad_scenario_files_are_one_line_naming_the_culprit(tmp_path, body, culprit):
     p = tmp_path / "s.yaml"
