@@ -25,7 +25,7 @@ from .abc_controller import abc_law, adapt
 from .actuator import diverged, valve_plant_step
 from .cost import Score, cost_increment, metric_finish, metric_update
 from .jit import INLINE, KERNEL, LEAF
-from .noise import measurement_noise
+from .noise import measurement_noise, noise_on
 from .params import (
     A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_PLANT, N_SAMPLES, N_SENSOR, WIN_END, WIN_START,
     X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
@@ -83,7 +83,7 @@ def _constants(ap, pp, cp, sp, ep):
     window sample, y_limit)."""
     ept = to_fixed_tuple(ep, N_EPISODE)
     spt = to_fixed_tuple(sp, N_SENSOR)
-    noisy = (spt[0] != 0.0) | (spt[1] != 0.0) | (spt[2] != 0.0) | (spt[3] != 0.0)
+    noisy = noise_on(spt)
     return (to_fixed_tuple(ap, N_ACTUATOR), to_fixed_tuple(pp, N_PLANT), to_fixed_tuple(cp, N_CONTROLLER), spt,
             noisy, ept, ept[DT], int(ept[N_SAMPLES]), int(ept[WIN_START]), int(ept[WIN_END]), ept[Y_LIMIT])
 

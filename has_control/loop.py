@@ -24,7 +24,7 @@ from .abc_controller import abc_law, adapt
 from .actuator import diverged, joint_state, valve_plant_step
 from .episode import TRACE_COLUMNS, put_trace_row
 from .jit import KERNEL
-from .noise import measurement_noise
+from .noise import measurement_noise, noise_on
 from .reference import reference
 from .topics import (CLOCK_LAYOUT, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, REFERENCE_LAYOUT,
                      STATE_LAYOUT)
@@ -122,7 +122,7 @@ def controller_sample(data, mem, gains, ap, cp, rp, sp, seed, dt, step_ns, comma
     a1_hat = mem[A1_HAT]
     a2_hat = mem[A2_HAT]
     m1, m2, m3, m4 = x1, x2, p1, p2
-    if sp[0] != 0.0 or sp[1] != 0.0 or sp[2] != 0.0 or sp[3] != 0.0:
+    if noise_on(sp):
         n1, n2, n3, n4 = measurement_noise(sp, seed, i)
         m1, m2, m3, m4 = x1 + n1, x2 + n2, p1 + n3, p2 + n4
     u, e1, e2, e3, rate1, rate2, x3d = abc_law(

@@ -52,6 +52,12 @@ def _normal_pair(seed, i, k):
     return r * math.cos(a), r * math.sin(a)
 
 
+@njit(**LEAF)
+def noise_on(sp):
+    """Whether the sensor array ``sp`` (array or tuple) asks for any noise."""
+    return (sp[0] != 0.0) | (sp[1] != 0.0) | (sp[2] != 0.0) | (sp[3] != 0.0)
+
+
 @njit(**INLINE)
 def measurement_noise(sp, seed, i):
     """The noise (on y [m], ẏ [m/s], P1 [Pa], P2 [Pa]) of sample i: standard
