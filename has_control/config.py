@@ -84,6 +84,12 @@ def _pair(check: Callable[[float], str | None]) -> Callable[[Any], str | None]:
 #: A seed: a whole number in [0, SEED_LIMIT).
 SEED_LIMIT = 2**63
 
+
+def is_seed(v: Any) -> bool:
+    """A whole number (not a bool) in [0, SEED_LIMIT): a seed of the noise, the road or the draws."""
+    return isinstance(v, int) and not isinstance(v, bool) and 0 <= v < SEED_LIMIT
+
+
 # key -> (section attribute, field name, kind, check)
 #   kind: "float", "pair" (two floats), "seed" (a whole number in [0, SEED_LIMIT)), or a dict of allowed strings
 _SCHEMA: dict[str, tuple[str, str, Any, Callable]] = {}
@@ -331,7 +337,7 @@ def _coerce(key: str, value: Any, kind: Any, source: str) -> Any:
             raise bad("expected a list of two numbers")
         return tuple(number(v) for v in value)
     if kind == "seed":
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value < SEED_LIMIT:
+        if not is_seed(value):
             raise bad("expected a whole number in [0, 2^63)")
         return value
     if isinstance(kind, Mapping):

@@ -31,7 +31,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from .config import MAX_CONFIG_BYTES, SEED_LIMIT, build_config, finite_number, flatten, load_yaml
+from .config import MAX_CONFIG_BYTES, build_config, finite_number, flatten, is_seed, load_yaml
 from .errors import ConfigError, shown
 from .files import read_text
 from .params import Config
@@ -115,7 +115,7 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     count, seed = spec.get("count"), spec.get("seed", 0)
     if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_SCENARIOS:
         raise ConfigError(f"{where}.count = {shown(count)}: expected a whole number in 1..{MAX_SCENARIOS}")
-    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < SEED_LIMIT:
+    if not is_seed(seed):
         raise ConfigError(f"{where}.seed = {shown(seed)}: expected a whole number in [0, 2^63)")
     prefix = spec.get("prefix", "random")
     if not isinstance(prefix, str) or not prefix:
@@ -134,7 +134,7 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
         if not ok:
             raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: expected [low, high], "
                               "two finite numbers, low <= high")
-        if key in _INTEGER_KEYS and not all(isinstance(v, int) and 0 <= v < SEED_LIMIT for v in r):
+        if key in _INTEGER_KEYS and not all(is_seed(v) for v in r):
             raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: a seed's range is two whole numbers >= 0")
         bounds[key] = r
     rng = np.random.default_rng(seed)
