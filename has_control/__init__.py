@@ -8,8 +8,8 @@ from pathlib import Path
 
 #: Modules whose compiled functions call one another (params holds the index
 #: constants the kernels bake in).
-COMPILED_MODULES = ("jit", "params", "cdr", "wire", "topics", "actuator", "reference", "abc_controller", "cost",
-                    "noise", "episode", "loop")
+COMPILED_MODULES = ("core.jit", "core.params", "core.actuator", "core.reference", "core.abc_controller",
+                    "core.cost", "core.noise", "core.episode", "wire.cdr", "wire.codec", "wire.topics", "wire.steps")
 
 
 def _load_compiled_modules() -> None:
@@ -29,7 +29,7 @@ def _load_compiled_modules() -> None:
     here = Path(__file__).resolve().parent
     digest = hashlib.sha256()
     for name in COMPILED_MODULES:
-        digest.update((here / f"{name}.py").read_bytes())
+        digest.update((here / f"{name.replace('.', '/')}.py").read_bytes())
     previous = numba.config.CACHE_DIR
     base = previous or str(here / "__pycache__")
     numba.config.CACHE_DIR = os.path.join(base, f"has_control-{digest.hexdigest()[:16]}")

@@ -12,7 +12,7 @@ import sys
 import time
 
 from has_control.nodes.foxglove import LiveView
-from has_control.topics import STATE_LAYOUT
+from has_control.wire.topics import STATE_LAYOUT
 
 CLIENT = r"""
 import asyncio, json, sys, time

@@ -8,7 +8,7 @@ ABC gains (k1, k2, k3) on the reference configuration, D = 3, at the paper's
 budget of 80 × 100 = 8 000 evaluations; its "error" is J itself (f* unknown).
 Three roles, one file:
 
-  --run ours   (project venv: has_control.swarm)            -> JSON lines
+  --run ours   (project venv: has_control.tuning.swarm)            -> JSON lines
   --run peers  (.venv-peers: pyswarms, mealpy, scipy)       -> JSON lines
   --serve      (project venv: J of gain rows read from stdin; the peers'
                 venv has no numba, so ``abc`` is evaluated by this server)
@@ -102,7 +102,7 @@ class Problem:
 # --- runners ---------------------------------------------------------------------
 
 def run_ours(variant: str, p: Problem, seed: int) -> None:
-    from has_control.swarm import minimize
+    from has_control.tuning.swarm import minimize
     # 20 % of the range on the test functions; SPEC's v_max on our own problem
     vmax = ABC_VMAX if p.name == "abc" else 0.2 * (p.upper[0] - p.lower[0])
     minimize(p, (p.lower, p.upper), variant=variant, n_particles=PARTICLES,
@@ -145,7 +145,7 @@ PEERS = {"pyswarms GlobalBestPSO": run_pyswarms,
 
 def abc_cost_local():
     """J of gain rows (N, 3) with the batch evaluator (project venv)."""
-    from has_control.episode import evaluate
+    from has_control.core.episode import evaluate
     return evaluate
 
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from has_control.actuator import derivative, plant_step, rk4_step
-from has_control.params import Actuator
+from has_control.core.actuator import derivative, plant_step, rk4_step
+from has_control.core.params import Actuator
 
 
 def leak_free_equilibrium(a: Actuator) -> np.ndarray:

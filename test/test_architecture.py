@@ -1,38 +1,140 @@
-"""Dependencies point inward: the numerical core imports no ROS."""
+"""Dependencies point inward, and the folders say how.
+
+The package's folders are its wings, from the inside out; a module may import
+its own wing and the wings inside it, never one further out or beside it. The
+rank of each wing is the one table kept by hand; which module belongs to which
+wing is read from the folders, and the imports from the code (``ast``).
+"""
+import ast
 import subprocess
 import sys
+from pathlib import Path
 
-CORE = ["jit", "params", "config", "actuator", "reference", "abc_controller", "cost", "episode",
-        "swarm", "tuning", "baselines", "cdr", "cli", "wire", "topics", "loop", "mcap_writer", "json_numbers"]
-BAGS = ["bag", "session"]          # rosbags and MCAP, but no rclpy
+import has_control
+
+PACKAGE = Path(has_control.__file__).resolve().parent
+
+#: Each wing and its rank: a wing may import only wings of lower rank (and itself).
+WINGS = {
+    "common": 0,    # errors, files, JSON numbers: what every wing shares
+    "core": 1,      # the physics, the law, the cost, the episode kernels: no ROS, no bags, no files
+    "config": 2,    # YAML and ros__parameters files into core's typed parameters
+    "wire": 2,      # topics, CDR codecs, one sample of plant or controller on serialized bytes
+    "bag": 3,       # rosbag2 MCAP: write, read, score
+    "plots": 4,     # figures
+    "tuning": 5,    # optimisers, sessions, robustness, the paper experiment, Dask
+    "nodes": 6,     # the ROS layer
+    "bench": 7,     # benchmarks
+    "cli": 8,       # the command line and the demo
+}
+ROS = ("rclpy", "sensor_msgs", "std_msgs", "rosgraph_msgs", "diagnostic_msgs", "std_srvs", "lifecycle_msgs")
+BAGS = ("rosbags", "mcap")
+#: What each wing may not load, directly or through another module.
+BANNED = {"common": ROS + BAGS, "core": ROS + BAGS, "config": ROS + BAGS, "wire": ROS + BAGS,
+          "bag": ROS, "plots": ROS, "tuning": ROS}
 
 
-def _imported(modules, banned) -> str:
+def _modules():
+    """(dotted name, wing, path) of every module of the package below a wing."""
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE)
+        if len(rel.parts) == 1:
+            continue                                      # has_control/__init__.py: the public API
+        parts = list(rel.with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts.pop()
+        yield "has_control." + ".".join(parts), rel.parts[0], path
+
+
+def _imports(path: Path, module: str, top_level_only: bool = False):
+    """(line, imported has_control module or package, is at module level) of one file."""
+    tree = ast.parse(path.read_text())
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    top = {id(n) for n in tree.body}
+    for node in ast.walk(tree):
+        at_top = id(node) in top
+        if top_level_only and not at_top:
+            continue
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+            names = [base] + [f"{base}.{a.name}" for a in node.names]
+        else:
+            continue
+        for name in names:
+            if name.startswith("has_control."):
+                yield node.lineno, name, at_top
+
+
+def _wing(name: str) -> str | None:
+    parts = name.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in WINGS else None
+
+
+def test_every_folder_is_a_wing_and_every_module_sits_in_one():
+    folders = {p.name for p in PACKAGE.iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert folders == set(WINGS)
+    loose = sorted(p.name for p in PACKAGE.glob("*.py") if p.name != "__init__.py")
+    assert loose == []
+
+
+def test_no_module_imports_a_wing_further_out_or_beside_its_own():
+    wrong = []
+    for module, wing, path in _modules():
+        for line, name, _ in _imports(path, module):
+            other = _wing(name)
+            if other and other != wing and WINGS[other] >= WINGS[wing]:
+                wrong.append(f"{path.relative_to(PACKAGE)}:{line} ({wing}) imports {name} ({other})")
+    assert wrong == []
+
+
+def test_no_import_cycles():
+    graph = {}
+    known = {m for m, _, _ in _modules()}
+    for module, _, path in _modules():
+        graph[module] = {n for _, n, _ in _imports(path, module, top_level_only=True) if n in known} - {module}
+    state = {}
+
+    def visit(m, stack):
+        state[m] = "open"
+        for n in sorted(graph.get(m, ())):
+            if state.get(n) == "open":
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(n):] + [n]))
+            if n not in state:
+                visit(n, stack + [n])
+        state[m] = "done"
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+
+
+def _loaded_by(modules, banned) -> str:
     code = ("import sys\n"
-            + "".join(f"import has_control.{m}\n" for m in modules)
+            + "".join(f"import {m}\n" for m in modules)
             + f"bad = sorted(m for m in sys.modules if m.split('.')[0] in {banned!r})\n"
             + "print(','.join(bad))")
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
 
 
-def test_core_modules_import_no_ros():
-    assert _imported(CORE, ("rclpy", "rosbags", "mcap", "sensor_msgs", "std_msgs", "rosgraph_msgs")) == ""
-
-
-def test_bag_modules_import_no_rclpy():
-    assert _imported(BAGS, ("rclpy", "sensor_msgs", "std_msgs", "rosgraph_msgs")) == ""
+def test_inner_wings_load_no_ros_and_no_bags():
+    for wing, banned in BANNED.items():
+        modules = [m for m, w, p in _modules() if w == wing and p.name != "__main__.py"]
+        assert _loaded_by(modules, banned) == "", wing
 
 
 def test_editing_a_callee_module_recompiles_the_kernels(tmp_path):
     """numba alone would keep episode's cached kernel after actuator.py changes."""
     import shutil
-    from pathlib import Path
 
-    import has_control
     pkg = tmp_path / "has_control"
-    shutil.copytree(Path(has_control.__file__).parent, pkg,
-                    ignore=shutil.ignore_patterns("__pycache__"))
-    code = ("import has_control.episode as e; e.simulate(e.with_horizon(e.Config(), 1.5));"
+    shutil.copytree(PACKAGE, pkg, ignore=shutil.ignore_patterns("__pycache__"))
+    code = ("import has_control.core.episode as e; from has_control.config import with_horizon;"
+            "e.simulate(with_horizon(e.Config(), 1.5));"
             "print(e._episode._cache._cache_path)")
     env = {"PYTHONPATH": str(tmp_path), "PATH": "/usr/bin:/bin"}
 
@@ -41,6 +143,6 @@ def test_editing_a_callee_module_recompiles_the_kernels(tmp_path):
                               capture_output=True, text=True, check=True).stdout.strip()
     first = cache_path()
     assert first == cache_path()                       # unchanged sources: the cache is reused
-    with open(pkg / "actuator.py", "a") as f:
+    with open(pkg / "core" / "actuator.py", "a") as f:
         f.write("\n# an edit to the physics\n")
     assert cache_path() != first

@@ -11,11 +11,12 @@ import pytest
 import rclpy
 import yaml
 
-from has_control import cdr
+from has_control.wire import cdr
 from has_control.bag import BagError, read_bag, score_bag, typestore
-from has_control.episode import simulate, with_horizon
+from has_control.core.episode import simulate
+from has_control.config import with_horizon
 from has_control.nodes.stack import run_stack
-from has_control.params import Config
+from has_control.core.params import Config
 
 HORIZON = 1.5
 N = 5000
@@ -34,7 +35,7 @@ def cli(*args, domain=None):
     env = dict(os.environ)
     if domain is not None:
         env["ROS_DOMAIN_ID"] = str(domain)
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "has_control.cli.main", *map(str, args)],
                           capture_output=True, text=True, timeout=600, env=env)
 
 

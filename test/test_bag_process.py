@@ -5,16 +5,16 @@ import sys
 import numpy as np
 import pytest
 
-from has_control import cdr
+from has_control.wire import cdr
 from has_control.bag import BagError, read_bag
 from has_control.bag.process import BagProcess
 
 SCRIPT = """
 import os, signal, sys
 import numpy as np
-from has_control import cdr
+from has_control.wire import cdr
 from has_control.bag.process import BagProcess
-from has_control.topics import JOINT_STATE, STATE_NAMES
+from has_control.wire.topics import JOINT_STATE, STATE_NAMES
 bag = BagProcess(sys.argv[1])
 bag.add_topic("/state", JOINT_STATE)
 for k in range(3):

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 import has_control
-from has_control.cluster import (
+from has_control.tuning.dask_evaluator import (
     LANES, ClusterError, SpecError, dask_batch, modelled_seconds, parse_spec, plan_tasks,
 )
 from has_control.config import build_config
-from has_control.episode import evaluate_configs
-from has_control.params import Config
-from has_control.tuning import Tuning, tune
+from has_control.core.episode import evaluate_configs
+from has_control.core.params import Config
+from has_control.tuning.tuner import Tuning, tune
 
 WorkerPlugin = pytest.importorskip("distributed").WorkerPlugin
 
@@ -59,7 +59,7 @@ def test_bad_specs_are_one_line_naming_the_spec(text, words):
         parse_spec(text)
     message = str(err.value)
     assert "\n" not in message and words in message and repr(text) in message
-    assert isinstance(err.value, ClusterError) and isinstance(err.value, has_control.errors.HasControlError)
+    assert isinstance(err.value, ClusterError) and isinstance(err.value, has_control.common.errors.HasControlError)
 
 
 def test_bad_spec_through_argparse_is_one_line(capsys):
@@ -94,7 +94,7 @@ def test_unreachable_scheduler_is_one_line_naming_the_address():
 
 
 def test_cluster_module_imports_no_ros_and_no_dask():
-    code = ("import sys, has_control.cluster\n"
+    code = ("import sys, has_control.tuning.dask_evaluator\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in "
             "('rclpy', 'rosbags', 'mcap', 'distributed', 'dask')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
@@ -155,7 +155,7 @@ def test_local_cluster_gives_the_bits_of_evaluate_configs():
 def test_a_worker_with_other_bits_is_refused(monkeypatch):
     """The warm-up compares every worker's probe with this process's: here
     this process pretends to compute other bits (a different kernel or libm)."""
-    import has_control.cluster as cluster
+    import has_control.tuning.dask_evaluator as cluster
 
     def off_by_one_ulp(gains, cfgs, workers=None):
         return np.nextafter(evaluate_configs(gains, cfgs, workers), np.inf)
@@ -324,7 +324,7 @@ def test_tune_through_dask_survives_a_worker_killed_mid_task(dask_processes, tmp
 
 
 def test_scaling_model_of_the_bench():
-    from has_control.bench import LAYOUTS, dask_scaling
+    from has_control.bench.dask import LAYOUTS, dask_scaling
     rows = dask_scaling(7.2e-3, 0.9e-3, 0.5e-3, 4.4e-3)
     assert len(rows) == 2 * len(LAYOUTS)
     paper = {(r["workers"], r["threads"]): r for r in rows if r["case"] == "paper"}
@@ -336,7 +336,7 @@ def test_scaling_model_of_the_bench():
 def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
     """Issue #14's "done when": ``tune --scenarios config/scenarios.yaml --aggregate cvar:0.2
     --dask local:2 --json`` gives the result it gives without --dask (a short run of it)."""
-    from has_control.cli import main
+    from has_control.cli.main import main
     from has_control.config import CONFIG_DIR
     args = ["tune", "--scenarios", str(CONFIG_DIR / "scenarios.yaml"), "--aggregate", "cvar:0.2",
             "--particles", "16", "--iterations", "3", "--duration", "1.2", "--json"]
@@ -353,8 +353,9 @@ def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
 def test_a_session_started_on_dask_resumes_locally_to_the_same_result(tmp_path):
     """Sessions stay resumable: the evaluator is not part of the result, so a
     session interrupted on a cluster finishes in-process with the same bits."""
-    from has_control.scenarios import Scenario, parse_aggregate
-    from has_control.session import run_session
+    from has_control.core.scenarios import parse_aggregate
+    from has_control.config import Scenario
+    from has_control.tuning.session import run_session
     cfg = build_config({"simulation.horizon": 1.2}, base=Config())
     t = Tuning().replace(particles=8, iterations=4, aggregate=parse_aggregate("max"),
                          scenarios=(Scenario("nominal"), Scenario("heavy", (("plant.mass", 1800.0),))))

@@ -2,8 +2,8 @@
 import pytest
 
 from has_control.config import CONFIG_DIR, config_parameters, load_config
-from has_control.errors import ConfigError
-from has_control.params import Config
+from has_control.common.errors import ConfigError
+from has_control.core.params import Config
 
 
 def test_shipped_files_are_the_reference_configuration():

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from has_control.abc_controller import abc_law, adapt, projection
-from has_control.episode import simulate
-from has_control.params import Actuator, Adaptation, Config, Reference
+from has_control.core.abc_controller import abc_law, adapt, projection
+from has_control.core.episode import simulate
+from has_control.core.params import Actuator, Adaptation, Config, Reference
 
 
 def test_projection_stops_only_outward_motion_at_the_bounds():

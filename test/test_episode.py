@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from has_control import baselines
-from has_control.episode import evaluate, simulate
-from has_control.params import Config, MANUAL_GAINS, PAPER_TUNED_GAINS
+from has_control.bench import baselines
+from has_control.core.episode import evaluate, simulate
+from has_control.core.params import Config, MANUAL_GAINS, PAPER_TUNED_GAINS
 
 # Pinned after test_reference_numbers_agree_with_an_independent_implementation
 # (plain Python, has_control/baselines.py) agreed with the compiled core.
@@ -86,8 +86,8 @@ def test_one_sample_step_compiles_to_one_function():
 
     from numba import njit
 
-    from has_control import episode
-    from has_control.jit import KERNEL
+    from has_control.core import episode
+    from has_control.core.jit import KERNEL
     fresh = njit(**dict(KERNEL, cache=False))(episode._block.py_func)
     a = episode.EpisodeArrays.from_config(Config())
     out = np.empty((1, 6))

@@ -10,8 +10,8 @@ import pytest
 
 from has_control.bag import STRING, BagWriter, describe, read_bag, recorded_run
 from has_control.config import CONFIG_DIR, load_config
-from has_control.errors import HasControlError
-from has_control.tuning import load_tuning
+from has_control.common.errors import HasControlError
+from has_control.tuning.tuner import load_tuning
 
 CONFIG_CASES = 300          # inputs to the config loader (about 2 s)
 BAG_CASES = 1400            # inputs to the bag reader (about 4 s)
@@ -103,8 +103,9 @@ def test_fuzz_the_config_loader(tmp_path):
 @pytest.fixture(scope="module")
 def small_bags(tmp_path_factory):
     from has_control.bag import PARAMETERS_KEY, parameters_json, write_trace
-    from has_control.episode import simulate, with_horizon
-    from has_control.params import Config
+    from has_control.core.episode import simulate
+    from has_control.config import with_horizon
+    from has_control.core.params import Config
     out = []
     for compression in ("zstd", "none"):
         cfg = with_horizon(Config(), 1.5)

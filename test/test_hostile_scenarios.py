@@ -7,11 +7,12 @@ import re
 import pytest
 from rclpy.parameter import Parameter
 
-from has_control.cli import main
+from has_control.cli.main import main
 from has_control.config import load_config
-from has_control.errors import ConfigError
-from has_control.scenarios import Aggregate, Scenario, parse_aggregate
-from has_control.tuning import Tuning, tuning_from_json, tuning_json
+from has_control.common.errors import ConfigError
+from has_control.core.scenarios import Aggregate, parse_aggregate
+from has_control.config import Scenario
+from has_control.tuning.tuner import Tuning, tuning_from_json, tuning_json
 
 
 @pytest.mark.parametrize("road,culprit", [
@@ -60,9 +61,9 @@ def test_a_stored_aggregate_is_the_aggregate_bit_for_bit():
 
 
 def test_a_session_with_damaged_scenarios_is_one_line(tmp_path, monkeypatch):
-    import has_control.session as session
+    import has_control.tuning.session as session
     from has_control.bag import BagError
-    from has_control.params import Config
+    from has_control.core.params import Config
 
     def damaged(t):
         return dict(tuning_json(t), scenarios=[{"name": "a", "overrides": [1, 2]}], aggregate="mean")
@@ -89,9 +90,9 @@ def test_the_tuner_node_takes_the_plant_options_and_the_noise(context):
 
 def test_stack_tuning_with_plant_options_scores_what_the_graph_runs(domain_id):
     from has_control.config import build_config
-    from has_control.episode import with_horizon
+    from has_control.config import with_horizon
     from has_control.nodes.stack import run_tuning_stack
-    from has_control.tuning import load_tuning, tune
+    from has_control.tuning.tuner import load_tuning, tune
     cfg = with_horizon(build_config({"plant.mass": 1700.0, "plant.valve_limit": 4e-3, "noise.position": 1e-6,
                                      "plant.valve_time_constant": 1e-3, "noise.seed": 7}), 1.2)
     out = run_tuning_stack(cfg, {"iterations": 2, "particles": 3}, evaluator="batch", domain_id=domain_id)

@@ -12,10 +12,11 @@ import pytest
 
 from has_control.bag import PARAMETERS_KEY, BagError, BagWriter, describe, parameters_json, read_bag, \
     score_bag, write_trace
-from has_control.cli import main
-from has_control.episode import simulate, with_horizon
-from has_control.errors import HasControlError
-from has_control.params import Config
+from has_control.cli.main import main
+from has_control.core.episode import simulate
+from has_control.config import with_horizon
+from has_control.common.errors import HasControlError
+from has_control.core.params import Config
 
 RUN_FLIPS = 120               # bit flips over the recorded run's .mcap
 SESSION_FLIPS = 24            # bit flips over the session's .mcap (each one a resume through the CLI)
@@ -125,7 +126,7 @@ def test_reversed_bag_reads_in_log_time_order_and_bag_info_is_right(run_bag, tmp
 
 
 def test_bag_info_labels_a_channel_by_its_message_encoding(tmp_path, capsys):
-    from has_control.mcap_writer import McapWriter
+    from has_control.bag.mcap_writer import McapWriter
     f = tmp_path / "json.mcap"
     w = McapWriter(f, "", "test")
     ch = w.add_channel("/events", w.add_schema("event", "jsonschema", b"{}"), "json", {})
@@ -140,8 +141,8 @@ def test_bag_info_labels_a_channel_by_its_message_encoding(tmp_path, capsys):
 def session_dir(tmp_path_factory):
     """A tuning session stopped after 3 of 6 iterations (its bag closed), and
     the result of the uninterrupted run."""
-    from has_control.session import Session
-    from has_control.tuning import load_tuning, tune
+    from has_control.tuning.session import Session
+    from has_control.tuning.tuner import load_tuning, tune
     base = tmp_path_factory.mktemp("sessions")
     args = ["tune", "--particles", "4", "--iterations", "6", "--duration", "1.5", "--json"]
     buf = io.StringIO()
@@ -197,7 +198,7 @@ def test_bit_flips_over_a_session_bag_resume_to_the_same_gains_or_stop_in_one_li
 
 
 def test_a_damaged_iteration_falls_back_to_the_previous_good_one(session_dir, tmp_path, capsys):
-    from has_control.session import ITERATION
+    from has_control.tuning.session import ITERATION
     d, full = session_dir
     copy = tmp_path / "s"
     shutil.copytree(d, copy)

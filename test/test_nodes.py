@@ -8,11 +8,13 @@ import rclpy
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 
-from has_control.episode import simulate, with_horizon
+from has_control.core.episode import simulate
+
+from has_control.config import with_horizon
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.plant_node import PlantNode
 from has_control.nodes.stack import run_stack
-from has_control.params import Config
+from has_control.core.params import Config
 
 
 def test_graph_run_equals_the_in_process_trace(context):
@@ -56,7 +58,7 @@ def test_invalid_gains_are_rejected_and_the_old_ones_kept(context, value):
 
 
 def _state_msg():
-    from has_control.nodes.messages import state_message
+    from has_control.nodes.runtime import state_message
     cfg = Config()
     return state_message(0, 300_000, cfg.actuator.initial_state(), cfg.actuator)
 
@@ -123,7 +125,7 @@ def test_killing_the_controller_mid_run_trips_the_fail_safe_and_a_restart_resume
     import subprocess
     import sys
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false"]
+    cmd = [sys.executable, "-m", "has_control.cli.main", "controller", "--ros-args", "-p", "publish_internals:=false"]
     ex = EventsExecutor(context=context)
     plant = PlantNode(context=context, parameter_overrides=[Parameter("command_timeout", value=0.05)])
     plant.log = []
@@ -163,7 +165,7 @@ def _realtime_run(context, failsafe_samples: int):
     depend on how fast this machine answers."""
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import JointState
-    from has_control.nodes.messages import CONTROL_QOS
+    from has_control.nodes.runtime import CONTROL_QOS
     ex = EventsExecutor(context=context)
     plant = PlantNode(context=context, parameter_overrides=[
         Parameter("mode", value="realtime"), Parameter("samples", value=4000),
@@ -252,7 +254,7 @@ def test_killing_the_controller_mid_run_in_realtime_mode(context, domain_id):
     import sys
     import threading
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false"]
+    cmd = [sys.executable, "-m", "has_control.cli.main", "controller", "--ros-args", "-p", "publish_internals:=false"]
     ex = EventsExecutor(context=context)
     samples = int(8.0 / 0.0003)
     plant = PlantNode(context=context, parameter_overrides=[

@@ -8,8 +8,9 @@ ROOT = Path(__file__).resolve().parent.parent
 RECORD = """
 import pathlib, sys
 from has_control.bag import PARAMETERS_KEY, BagWriter, parameters_json, score_bag, write_trace
-from has_control.episode import simulate, with_horizon
-from has_control.params import Config
+from has_control.core.episode import simulate
+from has_control.config import with_horizon
+from has_control.core.params import Config
 cfg = with_horizon(Config(), 1.5)
 bag = pathlib.Path(sys.argv[1]) / "run"
 with BagWriter(bag, {PARAMETERS_KEY: parameters_json(cfg)}) as w:

@@ -12,15 +12,16 @@ import math
 import numpy as np
 import pytest
 
-from has_control import noise
-from has_control.actuator import derivative, plant_step, valve_plant_step
+from has_control.core import noise
+from has_control.core.actuator import derivative, plant_step, valve_plant_step
 from has_control.config import build_config, load_config
-from has_control.cost import score_arrays
-from has_control.episode import EpisodeArrays, evaluate, simulate, with_horizon
-from has_control.errors import ConfigError
-from has_control.params import Config, Episode, Plant, Reference
-from has_control.reference import reference, reference_array
-from has_control.road import road_rms, road_table
+from has_control.core.cost import score_arrays
+from has_control.core.episode import EpisodeArrays, evaluate, simulate
+from has_control.config import with_horizon
+from has_control.common.errors import ConfigError
+from has_control.core.params import Config, Episode, Plant, Reference
+from has_control.core.reference import reference, reference_array
+from has_control.core.road import road_rms, road_table
 
 OPTIONS = {"plant.mass": 1650.0, "plant.bulk_modulus": 6.0e8, "plant.leakage": 1.0e-12,
            "plant.supply_pressure": 1.7e7, "plant.valve_limit": 4.0e-3, "plant.valve_time_constant": 1.0e-3,

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from has_control.params import Reference
-from has_control.reference import reference
+from has_control.core.params import Reference
+from has_control.core.reference import reference
 
 
 @pytest.mark.parametrize("ref", [

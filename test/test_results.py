@@ -10,9 +10,9 @@ import time
 
 import pytest
 
-from has_control.cli import main
-from has_control.errors import HasControlError
-from has_control.files import DirectoryLock, write_atomic
+from has_control.cli.main import main
+from has_control.common.errors import HasControlError
+from has_control.common.files import DirectoryLock, write_atomic
 
 TUNE = ["tune", "--particles", "4", "--iterations", "3", "--duration", "1.5"]
 
@@ -122,7 +122,7 @@ def test_write_atomic_keeps_the_old_file_and_names_the_path(tmp_path):
 
 
 def test_a_full_disk_under_the_bag_writer_names_the_bag(tmp_path, capsys, monkeypatch):
-    from has_control import cli
+    import has_control.cli.main as cli
     from has_control.bag import BagWriter, STRING
 
     def record_to_a_full_disk(args):

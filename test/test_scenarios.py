@@ -7,13 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from has_control.cli import main
+from has_control.cli.main import main
 from has_control.config import CONFIG_DIR, load_config
-from has_control.episode import evaluate, evaluate_configs, with_horizon
-from has_control.errors import ConfigError
-from has_control.scenarios import Aggregate, Scenario, evaluate_scenarios, load_scenarios, parse_aggregate
-from has_control.session import run_session
-from has_control.tuning import Tuning, tune
+from has_control.core.episode import evaluate, evaluate_configs
+from has_control.config import with_horizon
+from has_control.common.errors import ConfigError
+from has_control.core.scenarios import Aggregate, evaluate_scenarios, parse_aggregate
+from has_control.config import Scenario, load_scenarios
+from has_control.tuning.session import run_session
+from has_control.tuning.tuner import Tuning, tune
 
 SHIPPED = CONFIG_DIR / "scenarios.yaml"
 SMALL = """

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from has_control.swarm import Swarm, SwarmError, SwarmSettings, crazy_probability, minimize
+from has_control.tuning.swarm import Swarm, SwarmError, SwarmSettings, crazy_probability, minimize
 
 
 def sphere(x):

@@ -14,9 +14,9 @@ import pytest
 from llvmlite import binding as llvm
 from numba import njit
 
-from has_control import episode
-from has_control.jit import KERNEL
-from has_control.params import Config
+from has_control.core import episode
+from has_control.core.jit import KERNEL
+from has_control.core.params import Config
 
 DIVISIONS, ROOTS = 23, 10
 COPIES = 2

@@ -8,12 +8,13 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-from has_control import loop, topics
-from has_control.actuator import joint_state
+from has_control.wire import steps
+from has_control.wire import topics
+from has_control.core.actuator import joint_state
 from has_control.bag import typestore
-from has_control.episode import EpisodeArrays
-from has_control.params import Config
-from has_control.wire import MALFORMED, NOT_FINITE, TRAILING
+from has_control.core.episode import EpisodeArrays
+from has_control.core.params import Config
+from has_control.wire.codec import MALFORMED, NOT_FINITE, TRAILING
 
 STEP_NS = 300_000
 SAMPLE = 12_345                                       # t = 3.7035 s
@@ -22,18 +23,19 @@ SAMPLE = 12_345                                       # t = 3.7035 s
 def _state_bytes(x, sample=SAMPLE):
     cfg = Config()
     st, ck = topics.STATE_LAYOUT.buffer(), topics.CLOCK_LAYOUT.buffer()
-    loop.encode_state(np.asarray(x, dtype=float), cfg.actuator.as_array(), sample, STEP_NS, st, ck, loop.scratch())
+    steps.encode_state(np.asarray(x, dtype=float), cfg.actuator.as_array(), sample, STEP_NS, st, ck, steps.scratch())
     return st.tobytes(), ck.tobytes()
 
 
 def _controller_answer(state: bytes):
     cfg = Config()
     arr = EpisodeArrays.from_config(cfg)
-    mem = np.zeros(loop.CONTROLLER_MEMORY)
-    mem[loop.A1_HAT], mem[loop.A2_HAT] = cfg.adaptation.initial
+    mem = np.zeros(steps.CONTROLLER_MEMORY)
+    mem[steps.A1_HAT], mem[steps.A2_HAT] = cfg.adaptation.initial
     bufs = [topics.COMMAND_LAYOUT.buffer(), topics.CONTROLLER_STATE_LAYOUT.buffer(), topics.REFERENCE_LAYOUT.buffer()]
-    i = loop.controller_sample(state, mem, np.array(cfg.gains.as_tuple()), arr.actuator, arr.adaptation,
-                               arr.reference, arr.sensor, arr.seed, cfg.episode.step, STEP_NS, *bufs, np.zeros((0, 12)))
+    i = steps.controller_sample(state, mem, np.array(cfg.gains.as_tuple()), arr.actuator, arr.adaptation,
+                                arr.reference, arr.sensor, arr.seed, cfg.episode.step, STEP_NS, *bufs,
+                                np.zeros((0, 12)))
     return i, [b.tobytes() for b in bufs]
 
 
@@ -95,22 +97,22 @@ def test_rclpy_and_rosbags_decode_the_same_messages():
     t = SAMPLE * cfg.episode.step
     assert deserialize_message(internals, Float64MultiArray).data[0] == t
     assert deserialize_message(reference, Float64MultiArray).data[1] == pytest.approx(0.11 * math.sin(2 * t))
-    assert loop.command_of(command, STEP_NS, loop.scratch()) == (SAMPLE, cmd.position[0])
+    assert steps.command_of(command, STEP_NS, steps.scratch()) == (SAMPLE, cmd.position[0])
 
 
 def test_messages_of_another_layout_or_value_are_refused():
-    scr = loop.scratch()
+    scr = steps.scratch()
     good = JointState(name=["valve"], position=[1e-4])
-    assert loop.command_of(serialize_message(good), STEP_NS, scr) == (0, 1e-4)
+    assert steps.command_of(serialize_message(good), STEP_NS, scr) == (0, 1e-4)
     for bad in (JointState(), JointState(name=["valve"]), JointState(name=["spool"], position=[1e-4]),
                 JointState(name=["valve", "x"], position=[1e-4, 0.0])):
-        assert loop.command_of(serialize_message(bad), STEP_NS, scr)[0] == MALFORMED
+        assert steps.command_of(serialize_message(bad), STEP_NS, scr)[0] == MALFORMED
     off_grid = JointState(name=["valve"], position=[1e-4])
     off_grid.header.stamp.nanosec = 150_000
-    assert loop.command_of(serialize_message(off_grid), STEP_NS, scr)[0] == MALFORMED
-    assert loop.command_of(b"\x00\x01\x00\x00", STEP_NS, scr)[0] == MALFORMED
-    assert loop.command_of(serialize_message(JointState(name=["valve"], position=[math.nan])),
-                           STEP_NS, scr)[0] == NOT_FINITE
+    assert steps.command_of(serialize_message(off_grid), STEP_NS, scr)[0] == MALFORMED
+    assert steps.command_of(b"\x00\x01\x00\x00", STEP_NS, scr)[0] == MALFORMED
+    assert steps.command_of(serialize_message(JointState(name=["valve"], position=[math.nan])),
+                            STEP_NS, scr)[0] == NOT_FINITE
     state, _ = _state_bytes(Config().actuator.initial_state())
     assert _controller_answer(state)[0] == SAMPLE
     assert _controller_answer(serialize_message(JointState()))[0] == MALFORMED

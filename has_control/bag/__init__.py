@@ -5,7 +5,7 @@ Outer layer: rosbags and the MCAP format, no rclpy. A bag is what
 (rosbag2 version 9) and one ``.mcap`` file, profile ``ros2``, schemas
 ``ros2msg``, messages ``cdr``, zstd-compressed chunks with their CRCs, each
 channel with its ``offered_qos_profiles`` and ``topic_type_hash``. The MCAP
-file is written by :mod:`~has_control.mcap_writer` (batches of messages as
+file is written by :mod:`~has_control.bag.mcap_writer` (batches of messages as
 NumPy arrays); rosbags supplies the message definitions, their type hashes
 and the QoS profiles' form. Log time is simulation time. The run's parameters
 travel in the bag's ``custom_data`` (key ``has_control/parameters``, JSON),
@@ -17,11 +17,13 @@ much was lost), and a bare ``.mcap`` file is accepted as rosbag2 accepts it.
 """
 from __future__ import annotations
 
-from ..topics import (  # noqa: F401  (re-exported: the bag code's vocabulary)
+from has_control.wire.topics import (  # noqa: F401  (re-exported: the bag code's vocabulary)
     CLOCK, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
     REFERENCE, RUN_TOPICS, STATE, STATE_NAMES, STRING,
 )
-from .base import MAGIC, PARAMETERS_KEY, BagError, warn  # noqa: F401
-from .read import Bag, describe, read_bag  # noqa: F401
-from .score import RecordedRun, recorded_run, score_bag  # noqa: F401
-from .write import BagWriter, QosSpec, as_batch, msgdef, parameters_json, typestore, write_trace  # noqa: F401
+from has_control.bag.base import MAGIC, PARAMETERS_KEY, BagError, warn  # noqa: F401
+from has_control.bag.read import Bag, describe, read_bag  # noqa: F401
+from has_control.bag.score import RecordedRun, recorded_run, score_bag  # noqa: F401
+from has_control.bag.write import (  # noqa: F401
+    BagWriter, QosSpec, as_batch, msgdef, parameters_json, typestore, write_trace,
+)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from ..errors import HasControlError
+from has_control.common.errors import HasControlError
 
 MAGIC = b"\x89MCAP0\r\n"
 PARAMETERS_KEY = "has_control/parameters"

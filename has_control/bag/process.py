@@ -17,8 +17,8 @@ import multiprocessing
 import signal
 from pathlib import Path
 
-from .base import BagError
-from .write import BagWriter, QosSpec, as_batch
+from has_control.bag.base import BagError
+from has_control.bag.write import BagWriter, QosSpec, as_batch
 
 
 class BagProcess:

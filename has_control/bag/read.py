@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable
 
-from ..files import MiB, read_bytes, read_text
-from .base import MAGIC, PARAMETERS_KEY, BagError, warn
+from has_control.common.files import MiB, read_bytes, read_text
+from has_control.bag.base import MAGIC, PARAMETERS_KEY, BagError, warn
 
 
 @dataclass
@@ -45,7 +45,7 @@ class Bag:
 
     def config(self, overrides: Iterable[str | Path] = ()):
         """The run's Config from the bag (else the shipped defaults, with a warning)."""
-        from ..config import build_config, load_config, read_parameter_files
+        from has_control.config import build_config, load_config, read_parameter_files
         overrides = list(overrides)
         stored = self.custom_data.get(PARAMETERS_KEY)
         if stored is None:
@@ -118,7 +118,7 @@ MAX_METADATA_BYTES = 16 * MiB
 
 
 def _files_from_metadata(meta: Path, bag: Bag) -> list[Path]:
-    from ..config import load_yaml
+    from has_control.config import load_yaml
     doc = load_yaml(read_text(meta, MAX_METADATA_BYTES, BagError), str(meta), BagError, "malformed YAML")
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     if not isinstance(info, dict):
@@ -340,7 +340,7 @@ def _custom_from_serialized(text: str, bag: Bag, f: Path) -> None:
     """custom_data of the MCAP file's rosbag2 Metadata record (inside the
     CRC-checked data), if metadata.yaml gave none. metadata.yaml's wins (it may
     be edited on purpose), but never silently: a difference is warned about."""
-    from ..config import load_yaml
+    from has_control.config import load_yaml
     try:
         doc = load_yaml(text, f"{f} (rosbag2 metadata)", BagError)
         info = doc.get("rosbag2_bagfile_information", doc)     # rosbag2 stores the inner mapping

@@ -7,10 +7,10 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from .. import cdr
-from ..topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, STATE
-from .base import BagError, warn
-from .read import Bag, read_bag
+from has_control.wire import cdr
+from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, STATE
+from has_control.bag.base import BagError, warn
+from has_control.bag.read import Bag, read_bag
 
 
 @dataclass
@@ -86,7 +86,7 @@ def score_bag(path: str | Path, overrides: Iterable[str | Path] = (),
               on_warning: Callable[[str], None] = warn):
     """J, e_max, e_μ, e_σ of a recorded lock-step run (SPEC §6), as the core
     scores it; warnings (truncation, missing parameters) go to ``on_warning``."""
-    from ..cost import score_arrays
+    from has_control.core.cost import score_arrays
     bag = read_bag(path, topics=None, on_warning=on_warning)
     run = recorded_run(bag, overrides)
     return score_arrays(run["e1"], run.u, run.cfg.episode.as_array(), diverged=run.diverged), run

@@ -1,4 +1,4 @@
-"""Writing rosbag2 bags: the rosbag2 layer over :mod:`~has_control.mcap_writer`
+"""Writing rosbag2 bags: the rosbag2 layer over :mod:`~has_control.bag.mcap_writer`
 (message definitions, type hashes and QoS profiles from rosbags'
 typestore, ``metadata.yaml``), and a trace written as the graph's messages."""
 from __future__ import annotations
@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .. import cdr
-from ..topics import (CLOCK, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
-                      REFERENCE, STATE, STATE_NAMES)
-from .base import BagError
+from has_control.wire import cdr
+from has_control.wire.topics import (CLOCK, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
+                                     REFERENCE, STATE, STATE_NAMES)
+from has_control.bag.base import BagError
 
 #: The ROS release whose message definitions (and type hashes) the bags carry.
 ROS_DISTRO = "kilted"
@@ -70,13 +70,13 @@ def _yaml(doc) -> str:
 class BagWriter:
     """A rosbag2 (version 9) MCAP bag, as ``ros2 bag record -s mcap`` writes it
     (see the module's docstring), written message by message or in NumPy
-    batches by :class:`~has_control.mcap_writer.McapWriter`.
+    batches by :class:`~has_control.bag.mcap_writer.McapWriter`.
 
     ``compression`` is ``"zstd"`` (chunks, the default) or ``"none"``.
     ``metadata.yaml`` is written on :meth:`close`, as rosbags writes it."""
 
     def __init__(self, path: str | Path, custom_data: dict[str, str] | None = None, compression: str = "zstd"):
-        from ..mcap_writer import McapWriter
+        from has_control.bag.mcap_writer import McapWriter
         self.path = Path(path)
         self.custom_data = dict(custom_data or {})
         bad = [k for k, v in self.custom_data.items() if not isinstance(v, str)]
@@ -187,20 +187,20 @@ class BagWriter:
 
 
 def parameters_json(cfg) -> str:
-    from ..config import config_parameters
+    from has_control.config import config_parameters
     return json.dumps(config_parameters(cfg))
 
 
 def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: int = 0) -> None:
-    """Write an in-process :class:`~has_control.episode.Trace` as the messages
+    """Write an in-process :class:`~has_control.core.episode.Trace` as the messages
     the node graph publishes for it: state, command, reference, controller
     state and gains, under ``prefix`` (e.g. ``/validation``). Log time is
     simulation time plus ``log_offset_ns``; stamps are simulation time."""
-    from ..actuator import joint_state
-    from ..episode import EpisodeArrays
-    from ..topics import CONTROLLER_STATE_COLUMNS, GAINS_COLUMNS, REFERENCE_COLUMNS
-    from ..wire import column_label
-    from ..reference import reference
+    from has_control.core.actuator import joint_state
+    from has_control.core.episode import EpisodeArrays
+    from has_control.wire.topics import CONTROLLER_STATE_COLUMNS, GAINS_COLUMNS, REFERENCE_COLUMNS
+    from has_control.wire.codec import column_label
+    from has_control.core.reference import reference
     d = trace.data
     n = len(d)
     step_ns = int(round(cfg.episode.step * 1e9))

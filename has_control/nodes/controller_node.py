@@ -1,9 +1,9 @@
 """The controller node: the adaptive back-stepping law on every state it receives.
 
 Each state arrives as serialized bytes; one compiled call
-(:func:`has_control.loop.controller_sample`) decodes it, runs the one
-implementation (:func:`~has_control.abc_controller.abc_law`, ``adapt``,
-:func:`~has_control.reference.reference`) with the sample time taken from the
+(:func:`has_control.wire.steps.controller_sample`) decodes it, runs the one
+implementation (:func:`~has_control.core.abc_controller.abc_law`, ``adapt``,
+:func:`~has_control.core.reference.reference`) with the sample time taken from the
 state's stamp, and encodes the valve command, stamped like the state it
 answers, and the internals. A state that goes back in time (a second plant on
 the topic) is counted as a conflict and logged as an error. A state of
@@ -18,7 +18,7 @@ core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
 and the old values stay; accepted changes apply from the next sample.
 ``simulation.*`` (the step must be the plant's) is read-only after start-up.
 
-Topics (layouts in :mod:`has_control.topics`): ``state`` (in), ``command``
+Topics (layouts in :mod:`has_control.wire.topics`): ``state`` (in), ``command``
 (out), and std_msgs/Float64MultiArray leading with the sample's simulation
 time t [s] (the type has no header): ``~/controller_state`` [t, e1 [m],
 e2 [m/s], e3 [N], â1, â2, x1d [m]], ``~/reference`` [t, x1d [m], ẋ1d [m/s],
@@ -37,15 +37,17 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from .. import loop
-from ..episode import TRACE_COLUMNS, EpisodeArrays
-from ..errors import ConfigError
-from ..topics import (COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE, CONTROLLER_STATE_LAYOUT, GAINS, GAINS_LAYOUT,
-                      REFERENCE, REFERENCE_LAYOUT, STATE)
-from ..wire import NOT_FINITE, get_stamp
-from .foxglove import node_tap
-from .messages import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
-from .parameters import config_from_node, declare_config
+from has_control.wire import steps
+from has_control.core.episode import TRACE_COLUMNS, EpisodeArrays
+from has_control.common.errors import ConfigError
+from has_control.wire.topics import (
+    COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE, CONTROLLER_STATE_LAYOUT, GAINS, GAINS_LAYOUT, REFERENCE,
+    REFERENCE_LAYOUT, STATE,
+)
+from has_control.wire.codec import NOT_FINITE, get_stamp
+from has_control.nodes.foxglove import node_tap
+from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
+from has_control.nodes.parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "noise.")
 
@@ -56,7 +58,7 @@ class ControllerNode(Node):
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES, read_only=("simulation.",))
         self.declare_parameter("publish_internals", True)
-        self._mem = np.zeros(loop.CONTROLLER_MEMORY)
+        self._mem = np.zeros(steps.CONTROLLER_MEMORY)
         self._command = COMMAND_LAYOUT.buffer()
         self._internals = CONTROLLER_STATE_LAYOUT.buffer()
         self._reference = REFERENCE_LAYOUT.buffer()
@@ -66,7 +68,7 @@ class ControllerNode(Node):
         self._apply(config_from_node(self, PREFIXES))
         self._pending = None
         self.reset()
-        loop.warm_up()                         # compile or load the step before joining the graph
+        steps.warm_up()                         # compile or load the step before joining the graph
         self.add_on_set_parameters_callback(self._on_set_parameters)
         tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         self.command_pub = self.create_publisher(JointState, COMMAND, CONTROL_QOS)
@@ -94,22 +96,22 @@ class ControllerNode(Node):
 
     def reset(self) -> None:
         """Estimates back to â(0); the next sample starts a new run."""
-        self._mem[loop.A1_HAT], self._mem[loop.A2_HAT] = self.cfg.adaptation.initial
-        self._mem[loop.X3D_PREV] = self._mem[loop.HAS_PREV] = 0.0
+        self._mem[steps.A1_HAT], self._mem[steps.A2_HAT] = self.cfg.adaptation.initial
+        self._mem[steps.X3D_PREV] = self._mem[steps.HAS_PREV] = 0.0
         self._last_state = self._last_command = b""
         self._announce = True                   # publish the gains in force at the next sample
 
     @property
     def a1_hat(self) -> float:
-        return float(self._mem[loop.A1_HAT])
+        return float(self._mem[steps.A1_HAT])
 
     @a1_hat.setter
     def a1_hat(self, value: float) -> None:
-        self._mem[loop.A1_HAT] = value
+        self._mem[steps.A1_HAT] = value
 
     @property
     def a2_hat(self) -> float:
-        return float(self._mem[loop.A2_HAT])
+        return float(self._mem[steps.A2_HAT])
 
     def record_trace(self, samples: int) -> np.ndarray:
         """Keep rows 0..samples-1 of the run (TRACE_COLUMNS) in a preallocated array."""
@@ -152,8 +154,8 @@ class ControllerNode(Node):
             self._apply(*self._pending)
             self._pending = None
             self._announce = True
-        i = loop.controller_sample(data, self._mem, self._gains, self.ap, self.cp, self.rp, self.sp, self.seed,
-                                   self.dt, self.step_ns, self._command, self._internals, self._reference, self.trace)
+        i = steps.controller_sample(data, self._mem, self._gains, self.ap, self.cp, self.rp, self.sp, self.seed,
+                                    self.dt, self.step_ns, self._command, self._internals, self._reference, self.trace)
         if i < 0:
             self.malformed_states += 1
             what = "a non-finite value" if i == NOT_FINITE else "not the plant's JointState on the sample grid"

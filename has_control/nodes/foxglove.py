@@ -21,9 +21,9 @@ from __future__ import annotations
 import struct
 from typing import Callable
 
-from ..errors import HasControlError
-from ..topics import CLOCK, JOINT_STATE, LAYOUTS, RUN_TOPICS
-from .messages import tee
+from has_control.common.errors import HasControlError
+from has_control.wire.topics import CLOCK, JOINT_STATE, LAYOUTS, RUN_TOPICS
+from has_control.nodes.runtime import tee
 
 DEFAULT_PORT = 8765
 PARAMETER = "foxglove_port"
@@ -48,7 +48,7 @@ def check_port(port, what: str) -> int:
 def _schema(msgtype: str):
     import foxglove
 
-    from ..bag import msgdef
+    from has_control.bag import msgdef
     return foxglove.Schema(name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode())
 
 

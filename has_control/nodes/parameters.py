@@ -7,8 +7,8 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 
-from ..config import build_config, config_parameters, load_config, parameter_comments, parameter_kind
-from ..params import PLANT_OVERRIDES, Config
+from has_control.config import build_config, config_parameters, load_config, parameter_comments, parameter_kind
+from has_control.core.params import PLANT_OVERRIDES, Config
 
 
 def declare_config(node: Node, prefixes: tuple[str, ...], cfg: Config | None = None,
@@ -29,7 +29,7 @@ def declare_config(node: Node, prefixes: tuple[str, ...], cfg: Config | None = N
 
 def declare_plant_overrides(node: Node) -> None:
     """Declare ``plant.<name>`` for each actuator parameter a plant may have
-    apart from the model (:data:`~has_control.params.PLANT_OVERRIDES`),
+    apart from the model (:data:`~has_control.core.params.PLANT_OVERRIDES`),
     read-only, defaulting to the node's ``actuator.<name>``: unset, the plant
     is the model."""
     comments = parameter_comments()

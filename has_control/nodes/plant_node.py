@@ -1,9 +1,9 @@
 """The plant node: simulates the actuator at one 0.3 ms step per sample.
 
-Every step is one compiled call (:func:`has_control.loop.plant_sample`) of
-the one implementation, :func:`has_control.actuator.plant_step`, that also
+Every step is one compiled call (:func:`has_control.wire.steps.plant_sample`) of
+the one implementation, :func:`has_control.core.actuator.plant_step`, that also
 encodes the new state; commands are taken as serialized bytes and decoded by
-compiled code (:func:`has_control.loop.command_of`). So a run through the
+compiled code (:func:`has_control.wire.steps.command_of`). So a run through the
 graph equals the in-process trace, bit for bit.
 
 ``mode: lockstep`` (default): publish state i, wait for command i, advance,
@@ -62,13 +62,13 @@ from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
-from .. import loop
-from ..topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
-from ..wire import NOT_FINITE
-from .foxglove import node_tap
-from .messages import CONTROL_QOS, node_main, qos, raw_publish, trigger_service
-from .pacing import LoopStats, run_paced
-from .parameters import config_from_node, declare_config, declare_plant_overrides
+from has_control.wire import steps
+from has_control.wire.topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
+from has_control.wire.codec import NOT_FINITE
+from has_control.nodes.foxglove import node_tap
+from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, trigger_service
+from has_control.nodes.pacing import LoopStats, run_paced
+from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 
 PREFIXES = ("actuator.", "simulation.", "plant.")
 MODES = ("lockstep", "realtime")
@@ -115,8 +115,8 @@ class PlantNode(Node):
         self.mode = self.get_parameter("mode").value
         self._state_msg = STATE_LAYOUT.buffer()
         self._clock_msg = CLOCK_LAYOUT.buffer()
-        self._scratch = loop.scratch()
-        loop.warm_up()                                # compile or load the step and decoder first
+        self._scratch = steps.scratch()
+        steps.warm_up()                                # compile or load the step and decoder first
         tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos(CLOCK_TOPIC))
@@ -185,7 +185,7 @@ class PlantNode(Node):
         self.diverged = False
         self.command_sample, self.command_u = -1, 0.0
         self._answered_at, self._answers = [-1] * ANSWERS_KEPT, [0.0] * ANSWERS_KEPT
-        loop.encode_state(self.x, self.ap, 0, self.step_ns, self._state_msg, self._clock_msg, self._scratch)
+        steps.encode_state(self.x, self.ap, 0, self.step_ns, self._state_msg, self._clock_msg, self._scratch)
         self._last_publish = time.monotonic()
         self._published = False
 
@@ -230,8 +230,8 @@ class PlantNode(Node):
         k = self.sample % ANSWERS_KEPT
         self._answered_at[k], self._answers[k] = (self.sample, u) if answered else (-1, 0.0)
         self.sample += 1
-        bad = loop.plant_sample(self.x, u, self.ap, self.step_s, self.y_limit, self.sample, self.step_ns,
-                                self._state_msg, self._clock_msg, self._scratch)
+        bad = steps.plant_sample(self.x, u, self.ap, self.step_s, self.y_limit, self.sample, self.step_ns,
+                                 self._state_msg, self._clock_msg, self._scratch)
         if self.samples and self.sample >= self.samples:
             self._finish()
             return False
@@ -249,7 +249,7 @@ class PlantNode(Node):
 
     def _on_command(self, data: bytes) -> None:
         """Read: keep the latest command; in lock-step, the awaited one advances the plant."""
-        i, u = loop.command_of(data, self.step_ns, self._scratch)
+        i, u = steps.command_of(data, self.step_ns, self._scratch)
         if i < 0:
             i, u = self._decode_other_layout(data, i)
             if i < 0:

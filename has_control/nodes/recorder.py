@@ -34,10 +34,10 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from ..bag import PARAMETERS_KEY, BagWriter, QosSpec, as_batch, parameters_json
-from ..bag.process import BagProcess
-from ..topics import (CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, QOS, RUN_TOPICS, STATE,
-                      STATE_LAYOUT)
+from has_control.bag import PARAMETERS_KEY, BagWriter, QosSpec, as_batch, parameters_json
+from has_control.bag.process import BagProcess
+from has_control.wire.topics import (CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, QOS, RUN_TOPICS, STATE,
+                                     STATE_LAYOUT)
 
 _CLASSES = {JOINT_STATE: JointState, CLOCK: Clock, FLOAT64_ARRAY: Float64MultiArray}
 

@@ -24,10 +24,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 
-from .. import cdr
-from ..bag import (CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, STATE, STRING, BagError,
-                   read_bag)
-from .messages import CONTROL_QOS, borrowed_context, sample_of
+from has_control.wire import cdr
+from has_control.bag import CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, STATE, STRING, BagError, read_bag
+from has_control.nodes.runtime import CONTROL_QOS, borrowed_context, sample_of
 
 CLASSES = {JOINT_STATE: JointState, CLOCK: Clock, FLOAT64_ARRAY: Float64MultiArray, STRING: String}
 
@@ -96,8 +95,8 @@ class ReplayCheck:
 def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | None = None,
                       timeout: float = 5.0) -> ReplayCheck:
     """Feed the recorded states to a fresh controller node; compare its commands."""
-    from ..config import config_parameters
-    from .controller_node import ControllerNode
+    from has_control.config import config_parameters
+    from has_control.nodes.controller_node import ControllerNode
     bag = read_bag(path)
     cfg = bag.config()
     st, cm = bag.find(STATE, JOINT_STATE), bag.find(COMMAND, JOINT_STATE)

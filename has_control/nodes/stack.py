@@ -18,11 +18,11 @@ import rclpy
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 
-from ..cost import Score, score_arrays
-from ..params import Config
-from .controller_node import ControllerNode
-from .messages import borrowed_context, tee
-from .plant_node import PlantNode
+from has_control.core.cost import Score, score_arrays
+from has_control.core.params import Config
+from has_control.nodes.controller_node import ControllerNode
+from has_control.nodes.runtime import borrowed_context, tee
+from has_control.nodes.plant_node import PlantNode
 
 
 @dataclass
@@ -38,13 +38,13 @@ class StackRun:
 
 
 def _overrides(cfg: Config) -> list[Parameter]:
-    from ..config import config_parameters
+    from has_control.config import config_parameters
     return [Parameter(k, value=v) for k, v in config_parameters(cfg).items()]
 
 
 def _plant_parameters(params: list[Parameter]) -> list[Parameter]:
     """The plant's share of a Config's parameters (actuator.*, simulation.*)."""
-    from .plant_node import PREFIXES
+    from has_control.nodes.plant_node import PREFIXES
     return [p for p in params if p.name.startswith(PREFIXES)]
 
 
@@ -79,7 +79,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     run's topics live on a Foxglove WebSocket at this port of 127.0.0.1
     (:class:`~has_control.nodes.foxglove.LiveView`) for the run.
     """
-    from ..config import build_config
+    from has_control.config import build_config
     cfg = cfg or Config()
     if gains is not None:
         cfg = build_config({"gains.k1": float(gains[0]), "gains.k2": float(gains[1]),
@@ -93,7 +93,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         interrupted: list = []
         try:
             if record is not None:
-                from .recorder import Recorder
+                from has_control.nodes.recorder import Recorder
                 recorder = Recorder(namespace=namespace, subscribe=False, process=True)
                 recorder.open(record, cfg)
             tap = tee(recorder and recorder.sink, live and live.sink)
@@ -160,7 +160,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at,
                        close_seconds)
         if any(conflicts):
-            from ..errors import HasControlError
+            from has_control.common.errors import HasControlError
             raise HasControlError(
                 f"namespace '{namespace or '/'}': another node publishes on this loop's topics "
                 f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
@@ -174,7 +174,7 @@ def _live_view(port: int | None):
     if port is None:
         from contextlib import nullcontext
         return nullcontext()
-    from .foxglove import LiveView
+    from has_control.nodes.foxglove import LiveView
     return LiveView(port)
 
 
@@ -182,7 +182,7 @@ def _refuse_strangers(plant, controller) -> None:
     """Another publisher on the loop's state or command topic (a second
     controller, a second stack in this namespace) would mix its numbers into
     this run: refuse to start."""
-    from ..errors import HasControlError
+    from has_control.common.errors import HasControlError
     for node, topic in ((plant, controller._state_topic), (controller, plant._command_topic)):
         n = node.count_publishers(topic)
         if n > 1:
@@ -218,8 +218,8 @@ def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndar
     """A paced run's trace from what the plant ran: its states and the command
     each sample ran with (a held one after a miss), e1 against the reference;
     the controller's internals where it answered that sample (else NaN)."""
-    from ..episode import EpisodeArrays
-    from ..reference import reference
+    from has_control.core.episode import EpisodeArrays
+    from has_control.core.reference import reference
     rows = np.array(log, dtype=float).reshape(-1, 6)          # (sample, y, ẏ, P1, P2, u)
     trace = answered[:len(rows)].copy()
     t = rows[:, 0] * cfg.episode.step
@@ -277,9 +277,9 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
     config/tuner.yaml and ``config_files``. ``scenarios``: a scenario file
     (robust tuning, batch evaluator) scored by ``aggregate``.
     """
-    from ..tuning import load_tuning
-    from ..tuning import tuning_parameters
-    from .tuner_node import TunerNode
+    from has_control.tuning.tuner import load_tuning
+    from has_control.tuning.tuner import tuning_parameters
+    from has_control.nodes.tuner_node import TunerNode
     tuning = load_tuning(config_files).replace(**changes)
     namespaces = namespaces or [""]
     with borrowed_context(context, domain_id=domain_id) as context:
@@ -306,7 +306,7 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
         for node in nodes:
             node.destroy_node()
         if tuner.error:
-            from ..errors import HasControlError
+            from has_control.common.errors import HasControlError
             raise HasControlError(tuner.error)
         if tuner.result is None:
             raise RuntimeError(f"the tuner did not finish within {timeout:g} s")

@@ -1,6 +1,6 @@
 """The tuner node: tunes the controller's gains with a particle swarm.
 
-It drives the swarm's ask/tell interface (:func:`has_control.tuning.tune`,
+It drives the swarm's ask/tell interface (:func:`has_control.tuning.tuner.tune`,
 the same code as ``has-control tune``). With ``evaluator: graph`` every
 candidate runs through the node graph: the tuner sets the controller's
 gains with ``set_parameters_atomically``, resets plant and controller
@@ -48,12 +48,12 @@ from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from ..bag import BagError, score_bag
-from ..errors import ConfigError, HasControlError
-from ..swarm import Swarm
-from ..tuning import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
-from .parameters import config_from_node, declare_config, declare_plant_overrides
-from .recorder import Recorder
+from has_control.bag import BagError, score_bag
+from has_control.common.errors import ConfigError, HasControlError
+from has_control.tuning.swarm import Swarm
+from has_control.tuning.tuner import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
+from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
+from has_control.nodes.recorder import Recorder
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.", "plant.", "noise.")
 EVALUATORS = ("graph", "batch")
@@ -182,7 +182,8 @@ class TunerNode(Node):
 
     def _robust(self, tuning: Tuning) -> Tuning:
         """``tuning`` scored on the scenarios of parameter ``scenarios`` (a file; empty: the nominal episode)."""
-        from ..scenarios import load_scenarios, parse_aggregate
+        from has_control.core.scenarios import parse_aggregate
+        from has_control.config import load_scenarios
         path, how = self.get_parameter("scenarios").value, self.get_parameter("aggregate").value
         if not path:
             return tuning
@@ -225,7 +226,7 @@ class TunerNode(Node):
         """The session (the same runner as ``has-control tune``), candidates scored
         by the batch evaluator or through the lanes, the best gains set on every
         lane and (``validate_best``) validated through the graph."""
-        from ..session import run_session
+        from has_control.tuning.session import run_session
         log = self.get_logger()
         record = self.get_parameter("record").value or None
         resume_dir = self.get_parameter("resume").value or None
@@ -317,7 +318,7 @@ class TunerNode(Node):
 
 
 def main(args=None):
-    from .messages import node_main, spin
+    from has_control.nodes.runtime import node_main, spin
     failed = []
 
     def serve(executor, node: TunerNode) -> None:

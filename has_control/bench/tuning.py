@@ -1,0 +1,62 @@
+"""The optimisers' cost outside the evaluator, the paper experiment run for real,
+and scenario evaluation against the number of scenarios."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from has_control.bench.timing import BOUNDS, _best_of
+from has_control.config import CONFIG_DIR
+from has_control.core.episode import evaluate, evaluate_configs, threads
+from has_control.config import with_horizon
+from has_control.core.params import Config
+from has_control.config import Scenario, load_scenarios, scenario_configs
+from has_control.tuning.swarm import VARIANTS
+from has_control.tuning.tuner import Tuning, tune
+
+
+def bench_optimiser(iterations: int = 20) -> dict:
+    """Share of a tuning run spent in the swarm itself (not in the evaluator)."""
+    cfg = Config()
+    spent = [0.0]
+
+    def objective(k):
+        t0 = time.perf_counter()
+        out = evaluate(k, cfg)
+        spent[0] += time.perf_counter() - t0
+        return out
+    res = tune(cfg, Tuning().replace(iterations=iterations), objective=objective)
+    return {"iterations": iterations, "seconds": res.seconds,
+            "optimiser_share": (res.seconds - spent[0]) / res.seconds}
+
+
+def bench_paper(seed: int = 1) -> dict:
+    """The paper experiment for one seed, run for real: three variants, 80
+    particles, 100 iterations, one 10 s episode per candidate (24 000)."""
+    cfg = Config()
+    evaluate(np.array([[400.0, 400.0, 400.0]]), cfg)     # compile / load the cache
+    runs = {}
+    t0, c0 = time.perf_counter(), time.process_time()
+    for variant in VARIANTS:
+        res = tune(cfg, Tuning(seed=seed).replace(variant=variant))
+        runs[variant] = {"seconds": res.seconds, "evaluations": res.result.nfev, "J": res.result.fun}
+    return {"seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
+            "episodes": sum(r["evaluations"] for r in runs.values()), "runs": runs, "cores": threads()}
+
+
+def bench_scenarios(counts=(1, 10, 100), particles: int = 80, horizon: float = 2.0, repeats: int = 3) -> dict:
+    """Episodes/s of ``particles`` candidates on 1, 10 and 100 scenarios
+    (drifting plants as in config/scenarios.yaml), best of ``repeats``: the
+    cost of scenario evaluation should be linear in their number."""
+    cfg = with_horizon(Config(), horizon)
+    drawn = [s for s in load_scenarios(CONFIG_DIR / "scenarios_heldout.yaml") if s.name.startswith("held-out")]
+    gains = np.random.default_rng(0).uniform(*BOUNDS, size=(particles, 3))
+    evaluate_configs(gains[:2], scenario_configs(cfg, drawn[:2]))      # compile / load the cache
+    out = {}
+    for count in counts:
+        sc = [Scenario(f"{drawn[i % len(drawn)].name}-{i}", drawn[i % len(drawn)].overrides) for i in range(count)]
+        configs = scenario_configs(cfg, sc)
+        t = _best_of(repeats, lambda: evaluate_configs(gains, configs))
+        out[count] = {"seconds": t, "episodes_per_second": particles * count / t}
+    return {"particles": particles, "horizon": horizon, "runs": out}

@@ -1,0 +1,150 @@
+"""Scenario files: named overrides of the world, and seeded draws within ranges.
+
+A scenario is a named set of overrides of the world the controller meets
+(``plant.*``, ``noise.*``, ``reference.*``: the plant, its sensors, the road),
+never of the controller itself. A scenario file lists named scenarios and/or
+a seeded random draw of N of them within stated ranges::
+
+    scenarios:                       # named: each a mapping of overrides
+      nominal: {}
+      heavy: {plant.mass: 1800.0}
+      road-D: {reference: {kind: road, road_class: D, seed: 1}}
+    random:                          # N more, drawn uniformly (integers for seeds)
+      count: 20
+      seed: 1
+      prefix: draw                   # names draw-000, draw-001, ...
+      ranges: {plant.mass: [1200.0, 1800.0], noise.seed: [0, 1000000]}
+      set: {noise.position: 1.0e-6}  # the same in every draw
+
+The robust cost over a scenario set is :mod:`has_control.core.scenarios`'.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from has_control.common.errors import ConfigError, shown
+from has_control.common.files import read_text
+from has_control.config.params_file import MAX_CONFIG_BYTES
+from has_control.config.schema import build_config, finite_number, is_seed
+from has_control.config.yaml_safe import flatten, load_yaml
+from has_control.core.params import Config
+
+#: What a scenario may set: the world, not the controller.
+SCENARIO_PREFIXES = ("plant.", "noise.", "reference.")
+#: Scenarios in one set, named and drawn together.
+MAX_SCENARIOS = 10_000
+_INTEGER_KEYS = ("noise.seed", "reference.seed")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A named set of overrides (flat dotted keys, see :data:`SCENARIO_PREFIXES`)."""
+
+    name: str
+    overrides: tuple[tuple[str, Any], ...] = ()
+
+    def config(self, base: Config, source: str | None = None) -> Config:
+        """``base`` with this scenario's overrides (validated as a params file's)."""
+        return build_config(dict(self.overrides), source=source or f"scenario {self.name}", base=base)
+
+    def as_json(self) -> dict:
+        return {"name": self.name, "overrides": dict(self.overrides)}
+
+
+def scenarios_from_json(items: Sequence[Mapping]) -> tuple[Scenario, ...]:
+    return tuple(Scenario(str(d["name"]), tuple((str(k), v) for k, v in d["overrides"].items())) for d in items)
+
+
+def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenario, ...]:
+    """The scenarios of a scenario file (named ones first, then the draws),
+    each checked against ``base``. Errors name the file, the scenario and the key."""
+    path = Path(path)
+    doc = load_yaml(read_text(path, MAX_CONFIG_BYTES, ConfigError), str(path))
+    if not isinstance(doc, Mapping) or not doc or set(doc) - {"scenarios", "random"}:
+        extra = sorted(set(doc) - {"scenarios", "random"}, key=str) if isinstance(doc, Mapping) else []
+        raise ConfigError(f"{path}: expected a mapping with 'scenarios' and/or 'random'"
+                          + (f", not {', '.join(map(str, extra))}" if extra else ""))
+    out: list[Scenario] = []
+    named = doc.get("scenarios") or {}
+    if not isinstance(named, Mapping):
+        raise ConfigError(f"{path}: scenarios: expected a mapping of names to overrides")
+    for name, body in named.items():
+        if body is not None and not isinstance(body, Mapping):
+            raise ConfigError(f"{path}: scenario {name}: expected a mapping of overrides")
+        out.append(Scenario(str(name), _overrides(flatten(body or {}), path, str(name))))
+    if "random" in doc:
+        out.extend(_draws(doc["random"], path))
+    if not out:
+        raise ConfigError(f"{path}: no scenarios")
+    if len(out) > MAX_SCENARIOS:
+        raise ConfigError(f"{path}: {len(out)} scenarios, more than the limit of {MAX_SCENARIOS:,}")
+    names = [s.name for s in out]
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise ConfigError(f"{path}: scenario {dup}: named twice")
+    base = base or Config()
+    for s in out:
+        s.config(base, source=f"{path}: scenario {s.name}")
+    return tuple(out)
+
+
+def _overrides(flat: Mapping[str, Any], path: Path, name: str) -> tuple[tuple[str, Any], ...]:
+    for key in flat:
+        if not str(key).startswith(SCENARIO_PREFIXES):
+            raise ConfigError(f"{path}: scenario {name}: {key}: a scenario sets only "
+                              f"{', '.join(p + '*' for p in SCENARIO_PREFIXES)} (the world, not the controller)")
+    return tuple((str(k), v) for k, v in flat.items())
+
+
+def _draws(spec: Any, path: Path) -> list[Scenario]:
+    """``random:``'s N scenarios: each key of ``ranges`` uniform in [low, high]
+    (a whole number for a seed), in sorted key order, from one generator."""
+    where = f"{path}: random"
+    if not isinstance(spec, Mapping):
+        raise ConfigError(f"{where}: expected a mapping with count, seed and ranges")
+    unknown = sorted(set(spec) - {"count", "seed", "prefix", "ranges", "set"}, key=str)
+    if unknown:
+        raise ConfigError(f"{where}.{unknown[0]}: unknown key (count, seed, prefix, ranges, set)")
+    count, seed = spec.get("count"), spec.get("seed", 0)
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_SCENARIOS:
+        raise ConfigError(f"{where}.count = {shown(count)}: expected a whole number in 1..{MAX_SCENARIOS}")
+    if not is_seed(seed):
+        raise ConfigError(f"{where}.seed = {shown(seed)}: expected a whole number in [0, 2^63)")
+    prefix = spec.get("prefix", "random")
+    if not isinstance(prefix, str) or not prefix:
+        raise ConfigError(f"{where}.prefix = {shown(prefix)}: expected a name (the draws are PREFIX-000, ...)")
+    ranges = flatten(spec.get("ranges") or {}) if isinstance(spec.get("ranges") or {}, Mapping) else None
+    fixed = flatten(spec.get("set") or {}) if isinstance(spec.get("set") or {}, Mapping) else None
+    if ranges is None or fixed is None:
+        raise ConfigError(f"{where}: ranges and set are mappings of keys")
+    _overrides(fixed, path, f"{prefix}-*")
+    _overrides(ranges, path, f"{prefix}-*")
+    bounds = {}
+    for key in sorted(ranges):
+        r = ranges[key]
+        ok = isinstance(r, (list, tuple)) and len(r) == 2 and all(
+            not isinstance(finite_number(v), str) for v in r) and r[0] <= r[1]
+        if not ok:
+            raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: expected [low, high], "
+                              "two finite numbers, low <= high")
+        if key in _INTEGER_KEYS and not all(is_seed(v) for v in r):
+            raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: a seed's range is two whole numbers >= 0")
+        bounds[key] = r
+    rng = np.random.default_rng(seed)
+    width = len(str(count - 1))
+    out = []
+    for i in range(count):
+        drawn = dict(fixed)
+        for key, (lo, hi) in bounds.items():
+            drawn[key] = int(rng.integers(lo, hi, endpoint=True)) if key in _INTEGER_KEYS else float(
+                rng.uniform(lo, hi))
+        out.append(Scenario(f"{prefix}-{i:0{width}d}", tuple(drawn.items())))
+    return out
+
+
+def scenario_configs(cfg: Config, scenarios: Sequence[Scenario]) -> list[Config]:
+    return [s.config(cfg) for s in scenarios]

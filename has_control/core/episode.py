@@ -1,0 +1,378 @@
+"""One closed-loop episode (SPEC §5), as a trace or as a parallel batch of costs.
+
+One sample of one candidate is :func:`sample_step` (law, cost, metrics,
+adaptation, plant step, divergence test), inlined into both kernels:
+``_episode`` runs one candidate and records its trace (``simulate``);
+``_block`` runs up to LANES candidates together, structure of arrays, with a
+branch-free loop over lanes that LLVM vectorises (``evaluate``, blocks spread
+over threads). Both do the same arithmetic per candidate, so they give the
+same bits.
+"""
+from __future__ import annotations
+
+import math
+import os
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+import numba
+from numba import njit
+from numba.cpython.unsafe.tuple import tuple_setitem
+from numba.np.unsafe.ndarray import to_fixed_tuple
+
+from has_control.core.abc_controller import abc_law, adapt
+from has_control.core.actuator import diverged, valve_plant_step
+from has_control.core.cost import Score, cost_increment, metric_finish, metric_update
+from has_control.core.jit import INLINE, KERNEL, LEAF
+from has_control.core.noise import measurement_noise, noise_on
+from has_control.core.params import (
+    A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_PLANT, N_SAMPLES, N_SENSOR, WIN_END, WIN_START,
+    X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
+)
+from has_control.core.reference import reference, reference_array
+from has_control.core.scenarios import evaluate_scenarios
+
+#: Columns of a trace, in order. Units: s, m, m, m/s, Pa, Pa, m, m, m/s, N, N·s/m, m³/(s·Pa).
+TRACE_COLUMNS = ("t", "x1d", "y", "ydot", "P1", "P2", "u", "e1", "e2", "e3", "a1_hat", "a2_hat")
+_NCOL = len(TRACE_COLUMNS)
+
+#: Lanes of one block of the batch kernel: a compile-time constant, so the
+#: block's state is one (rows, LANES) array at fixed offsets and LLVM can prove
+#: the lanes independent and vectorise the lane loop (AVX2: 4 doubles a vector).
+#: A block with fewer candidates pads its last lanes with copies of its last one.
+LANES = 8
+
+
+@njit(**INLINE)
+def sample_step(x1, x2, x3, x4, xv, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, r3, n1, n2, n3, n4, noisy,
+                k1, k2, k3, j, mean, m2, peak, count, in_window, ap, pp, cp, ep, dt, y_limit):
+    """SPEC §5 steps 3-7 for one candidate at one sample: law, cost, metrics,
+    adaptation, plant step and divergence test.
+
+    x1..x4 is the plant's true state and xv its spool [m]; r0..r3 are the
+    reference values of the sample; the controller (model ``ap``) reads the
+    state plus the noise n1..n4 when ``noisy``, the plant (plant array ``pp``)
+    steps the true state, and the cost and metrics take the true
+    e1 = x1d − x1. ``count`` is the number of window samples including this
+    one, ``in_window`` whether this one is in the window. No branch depends
+    on the lane's own values except through selects, so a loop over lanes of
+    this function vectorises. Returns the next (x1..x4, xv, â1, â2, x3d, J,
+    mean, m2, peak), whether the run diverged, and (u, e1, e2, e3) of this
+    sample (e1 the true one; e2, e3 the controller's).
+    """
+    u, _, e2, e3, rate1, rate2, x3d = abc_law(
+        x1 + n1 if noisy else x1, x2 + n2 if noisy else x2, x3 + n3 if noisy else x3, x4 + n4 if noisy else x4,
+        a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, r2, r3, k1, k2, k3, ap, cp, dt)
+    e1 = r0 - x1                                    # the law's own e1 when there is no noise
+    j += cost_increment(e1, u, ep)
+    _, mean_w, m2_w, peak_w = metric_update(count - 1.0, mean, m2, peak, e1)
+    mean = mean_w if in_window else mean
+    m2 = m2_w if in_window else m2
+    peak = peak_w if in_window else peak
+    b1, b2 = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
+    y, v, p1, p2, sv = valve_plant_step(x1, x2, x3, x4, xv, u, pp, dt)
+    bad = diverged(y, v, p1, p2, y_limit) | (not math.isfinite(u))
+    return y, v, p1, p2, sv, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3
+
+
+@njit(**LEAF)
+def _constants(ap, pp, cp, sp, ep):
+    """The parameter arrays as tuples (in a loop, their entries are values
+    rather than loads from memory LLVM cannot prove unaliased), and the grid:
+    (ap, pp, cp, sp, whether there is noise, ep, dt, samples, first and last
+    window sample, y_limit)."""
+    ept = to_fixed_tuple(ep, N_EPISODE)
+    spt = to_fixed_tuple(sp, N_SENSOR)
+    noisy = noise_on(spt)
+    return (to_fixed_tuple(ap, N_ACTUATOR), to_fixed_tuple(pp, N_PLANT), to_fixed_tuple(cp, N_CONTROLLER), spt,
+            noisy, ept, ept[DT], int(ept[N_SAMPLES]), int(ept[WIN_START]), int(ept[WIN_END]), ept[Y_LIMIT])
+
+
+@njit(**LEAF)
+def put_trace_row(row, t, x1d, y, ydot, p1, p2, u, e1, e2, e3, a1_hat, a2_hat):
+    """One sample's row of a trace, in TRACE_COLUMNS order (the sample's state
+    and the estimates it was controlled with)."""
+    values = (t, x1d, y, ydot, p1, p2, u, e1, e2, e3, a1_hat, a2_hat)
+    for k in range(len(values)):
+        row[k] = values[k]
+
+
+@njit(**KERNEL)
+def _episode(k1, k2, k3, ap, pp, cp, rp, sp, seed, ep, x0, trace):
+    """Run one episode; fill ``trace`` rows if it has any (the true state, the
+    command, the true e1 and the controller's e2, e3 and estimates). Returns
+    (J, e_max, e_μ, e_σ, samples, diverged)."""
+    ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
+    record = trace.shape[0] > 0
+    x1 = x0[0]
+    x2 = x0[1]
+    x3 = x0[2]
+    x4 = x0[3]
+    xv = 0.0
+    a1_hat = cp[A1_INIT]
+    a2_hat = cp[A2_INIT]
+    x3d = 0.0
+    j = 0.0
+    count = mean = m2 = peak = 0.0
+    for i in range(n):
+        t = i * dt
+        r0, r1, r2, r3 = reference(rp, t)
+        n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
+        in_window = lo <= i <= hi
+        if in_window:
+            count += 1.0
+        y, v, p1, p2, sv, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3 = sample_step(
+            x1, x2, x3, x4, xv, a1_hat, a2_hat, x3d, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, k1, k2, k3,
+            j, mean, m2, peak, count, in_window, ap, pp, cp, ep, dt, y_limit)
+        if record:
+            put_trace_row(trace[i], t, r0, x1, x2, x3, x4, u, e1, e2, e3, a1_hat, a2_hat)
+        if bad:
+            return math.inf, math.inf, math.inf, math.inf, i + 1, True
+        x1, x2, x3, x4, xv, a1_hat, a2_hat = y, v, p1, p2, sv, b1, b2
+    e_max, e_mu, e_sigma = metric_finish(count, mean, m2, peak)
+    return j, e_max, e_mu, e_sigma, n, False
+
+
+# rows of a block's lane state
+_X1, _X2, _X3, _X4, _XV, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 = range(16)
+_ROWS = 16
+
+
+@njit(**INLINE)
+def _lanes(s, has_prev, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp, ep, dt, y_limit,
+           mark):
+    """One sample of every lane of a block: the loop LLVM vectorises. A lane
+    that diverges at this sample gets ``mark`` in its _DEAD row."""
+    for q in range(LANES):
+        (s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_XV, q], s[_A1, q], s[_A2, q], s[_X3D, q], s[_J, q],
+         s[_MEAN, q], s[_M2, q], s[_PEAK, q], bad, _, _, _, _) = sample_step(
+            s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_XV, q], s[_A1, q], s[_A2, q], s[_X3D, q], has_prev,
+            r0, r1, r2, r3, n1, n2, n3, n4, noisy, s[_K1, q], s[_K2, q], s[_K3, q],
+            s[_J, q], s[_MEAN, q], s[_M2, q], s[_PEAK, q], count, in_window, ap, pp, cp, ep, dt, y_limit)
+        dead = s[_DEAD, q]
+        s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
+
+
+@njit(**KERNEL)
+def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
+    """Episodes of candidates first..last-1 (at most LANES) advanced sample by
+    sample together, structure of arrays: lane q of row r is ``s[r, q]``.
+
+    The lane loop calls :func:`sample_step`, as :func:`_episode` does, so a
+    candidate's score does not depend on which block or lane it ran in. A
+    diverged lane goes on computing (its results are discarded); the block
+    stops when every lane has diverged. The ẋ3d mode is made a constant in
+    each of two copies of the lane loop, so neither computes the other mode's
+    division (4 % faster than one loop computing both).
+    """
+    ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
+    backward = int(cp[X3D_MODE]) == X3D_BACKWARD
+    cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
+    cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
+    s = np.zeros((_ROWS, LANES))
+    for q in range(LANES):
+        p = min(first + q, last - 1)
+        s[_X1, q] = x0[0]
+        s[_X2, q] = x0[1]
+        s[_X3, q] = x0[2]
+        s[_X4, q] = x0[3]
+        s[_A1, q] = cp[A1_INIT]
+        s[_A2, q] = cp[A2_INIT]
+        s[_K1, q] = gains[p, 0]
+        s[_K2, q] = gains[p, 1]
+        s[_K3, q] = gains[p, 2]
+    count = 0.0
+    for i in range(n):
+        r0, r1, r2, r3 = reference(rp, i * dt)
+        n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
+        in_window = lo <= i <= hi
+        if in_window:
+            count += 1.0
+        if backward:
+            _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp_backward, ep, dt,
+                   y_limit, i + 1.0)
+        else:
+            _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp_analytic, ep, dt,
+                   y_limit, i + 1.0)
+        alive = 0
+        for q in range(LANES):
+            alive += s[_DEAD, q] == 0.0
+        if alive == 0:
+            break
+    for q in range(min(last - first, LANES)):           # the caller never passes more
+        p = first + q
+        if s[_DEAD, q] > 0.0:
+            out[p, 0] = out[p, 1] = out[p, 2] = out[p, 3] = math.inf
+            out[p, 4] = s[_DEAD, q]
+            out[p, 5] = 1.0
+        else:
+            e_max, e_mu, e_sigma = metric_finish(count, s[_MEAN, q], s[_M2, q], s[_PEAK, q])
+            out[p, 0] = s[_J, q]
+            out[p, 1] = e_max
+            out[p, 2] = e_mu
+            out[p, 3] = e_sigma
+            out[p, 4] = n
+            out[p, 5] = 0.0
+
+
+def threads() -> int:
+    """Threads :func:`evaluate` runs on: NUMBA_NUM_THREADS (default: every core)."""
+    return max(1, int(numba.config.NUMBA_NUM_THREADS))
+
+
+def _block_edges(count: int, workers: int) -> np.ndarray:
+    """Split ``count`` candidates into blocks of at most LANES, a multiple of
+    the thread count so every core gets the same share."""
+    blocks = workers * max(1, math.ceil(count / (workers * LANES)))
+    blocks = max(1, min(blocks, count))
+    return np.linspace(0, count, blocks + 1).round().astype(np.int64)
+
+
+_POOL = (None, 0, 0)          # (executor, workers, pid that made it)
+_POOL_LOCK = threading.Lock()
+
+
+def _pool(workers: int):
+    """One thread pool for every call of :func:`evaluate` (starting threads
+    anew cost about 2 ms a call, 4-5 % of scoring 80 candidates). A forked
+    child, which has none of the parent's threads, makes its own."""
+    global _POOL
+    with _POOL_LOCK:
+        pool, size, pid = _POOL
+        if pool is None or size != workers or pid != os.getpid():
+            from concurrent.futures import ThreadPoolExecutor
+            pool = ThreadPoolExecutor(workers, thread_name_prefix="has_control-evaluate")
+            _POOL = (pool, workers, os.getpid())
+        return pool
+
+
+def _run_blocks(gains, arrays: "list[EpisodeArrays]", outs, workers: int | None = None) -> None:
+    """Every block of ``gains`` under every ``arrays[s]`` (into ``outs[s]``) on
+    ``workers`` threads (default :func:`threads`). ``_block`` releases the GIL,
+    so Python threads run blocks in parallel; each block writes its own rows of
+    its own ``out``, so the result does not depend on the schedule."""
+    if gains.shape[0] == 0 or not arrays:
+        return
+    workers = workers or threads()
+    edges = _block_edges(gains.shape[0], max(1, workers // len(arrays)) if len(arrays) < workers else 1)
+    tasks = [(s, b) for s in range(len(arrays)) for b in range(len(edges) - 1)]
+
+    def run(task):
+        s, b = task
+        _block(gains, edges[b], edges[b + 1], *arrays[s].kernel_args(), outs[s])
+    if workers == 1 or len(tasks) == 1:
+        for task in tasks:
+            run(task)
+        return
+    list(_pool(workers).map(run, tasks))
+
+
+@dataclass(frozen=True)
+class EpisodeArrays:
+    """The flat arrays the kernel reads, built once from a :class:`Config`:
+    the controller's model (``actuator``), the plant's (``plant``), the
+    adaptation, the reference (a road tabulated on the episode's grid), the
+    sensor noise's standard deviations and seed, the grid, and the plant's
+    initial state (its own static equilibrium, SPEC §4)."""
+
+    actuator: np.ndarray
+    plant: np.ndarray
+    adaptation: np.ndarray
+    reference: np.ndarray
+    sensor: np.ndarray
+    seed: int
+    episode: np.ndarray
+    x0: np.ndarray
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> "EpisodeArrays":
+        return cls(cfg.actuator.as_array(), cfg.plant.as_array(cfg.actuator), cfg.adaptation.as_array(),
+                   reference_array(cfg.reference, cfg.episode), cfg.noise.as_array(), int(cfg.noise.seed),
+                   cfg.episode.as_array(), cfg.plant.actuator(cfg.actuator).initial_state())
+
+    def kernel_args(self) -> tuple:
+        """(ap, pp, cp, rp, sp, seed, ep, x0): the arguments the kernels take after the gains."""
+        return (self.actuator, self.plant, self.adaptation, self.reference, self.sensor, self.seed, self.episode,
+                self.x0)
+
+
+@dataclass(frozen=True)
+class Trace:
+    """Time series of one episode (rows = samples, columns = TRACE_COLUMNS) and its score."""
+
+    data: np.ndarray
+    score: Score
+    gains: Gains
+
+    def __getitem__(self, column: str) -> np.ndarray:
+        return self.data[:, TRACE_COLUMNS.index(column)]
+
+
+def simulate(cfg: Config | None = None, gains: Gains | tuple | None = None,
+             x0: np.ndarray | None = None) -> Trace:
+    """Run one episode and return its :class:`Trace`.
+
+    ``gains`` defaults to ``cfg.gains``; ``x0`` (y, ẏ, P1, P2) to SPEC §4's
+    initial state. A diverged run's trace stops at the sample that diverged.
+    """
+    cfg = cfg or Config()
+    g = _as_gains(gains if gains is not None else cfg.gains)
+    arr = EpisodeArrays.from_config(cfg)
+    start = arr.x0 if x0 is None else np.asarray(x0, dtype=np.float64)
+    trace = np.zeros((cfg.episode.samples, _NCOL))
+    j, a, b, c, n, bad = _episode(g.k1, g.k2, g.k3, *arr.kernel_args()[:-1], start, trace)
+    return Trace(trace[:n], Score(j, a, b, c, int(n), bool(bad)), g)
+
+
+def _gains_array(gains) -> np.ndarray:
+    k = np.ascontiguousarray(np.atleast_2d(np.asarray(gains, dtype=np.float64)))
+    if k.ndim != 2 or k.shape[1] != 3:
+        raise ValueError(f"gains: expected shape (P, 3), got {np.shape(gains)}")
+    return k
+
+
+def evaluate(gains, cfg: Config | None = None, metrics: bool = False, scenarios=None, aggregate="mean"):
+    """Score many gain sets in parallel.
+
+    gains: (P, 3) array of (k1, k2, k3). Returns the (P,) costs J, or with
+    ``metrics`` a (P, 4) array of (J, e_max, e_μ, e_σ). Diverged runs give +inf.
+    Deterministic: each row depends on its gains only.
+
+    With ``scenarios`` (a sequence of :class:`~has_control.core.scenarios.Scenario`)
+    returns their :class:`~has_control.core.scenarios.ScenarioScores` instead: the
+    per-scenario metrics and the ``aggregate`` (mean, max, cvar:α) of J.
+    """
+    if scenarios is not None:
+        return evaluate_scenarios(gains, cfg or Config(), scenarios, aggregate, evaluate_configs)
+    out = evaluate_configs(gains, [cfg or Config()])[:, 0]
+    return out.copy() if metrics else out[:, 0].copy()
+
+
+def evaluate_configs(gains, cfgs, workers: int | None = None) -> np.ndarray:
+    """Every gain set under every configuration (a scenario set), on
+    ``workers`` threads (default :func:`threads`).
+
+    gains: (P, 3); cfgs: S Configs. Returns the (P, S, 4) array of
+    (J, e_max, e_μ, e_σ); a diverged run gives +inf. Row (p, s) depends on
+    gains[p] and cfgs[s] only, so any split of the work (threads, blocks,
+    Dask tasks) gives the same bits.
+    """
+    k = _gains_array(gains)
+    arrays = [EpisodeArrays.from_config(c) for c in cfgs]
+    outs = [np.empty((k.shape[0], 6)) for _ in arrays]
+    _run_blocks(k, arrays, outs, workers)
+    res = np.empty((k.shape[0], len(arrays), 4))
+    for s, out in enumerate(outs):
+        res[:, s] = out[:, :4]
+    return res
+
+
+def _as_gains(g) -> Gains:
+    if isinstance(g, Gains):
+        return g
+    k1, k2, k3 = (float(v) for v in g)
+    return Gains(k1, k2, k3)
+
+
+__all__ = ["TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs"]

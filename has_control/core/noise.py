@@ -1,0 +1,67 @@
+"""Seeded measurement noise as a pure function of (seed, sample, channel).
+
+A counter-based generator: the uniform draw of channel k at sample i is
+SplitMix64's finaliser applied to the counter 4·i + k under a key made from
+the seed, and two uniforms give two standard normals by Box-Muller. Nothing
+is carried from sample to sample, so the episode kernel, the batch kernel
+(once per sample for all its lanes) and the controller node (on the sample
+index of each state's stamp) draw the same values in any order, and a
+replayed or resumed run draws them again.
+
+Channels: 0 y [m], 1 ẏ [m/s], 2 P1 [Pa], 3 P2 [Pa], scaled by the standard
+deviations of :class:`~has_control.core.params.Noise` (the sensor array).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from has_control.core.jit import INLINE, LEAF
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
+_ULP53 = 1.0 / 9007199254740992.0           # 2^-53
+_TWO_PI = 2.0 * math.pi
+
+
+@njit(**LEAF)
+def _mix(z):
+    """SplitMix64's finaliser (a bijection of uint64 with full avalanche)."""
+    z = (z ^ (z >> _S30)) * _M1
+    z = (z ^ (z >> _S27)) * _M2
+    return z ^ (z >> _S31)
+
+
+@njit(**LEAF)
+def uniform(seed, i, k):
+    """A uniform draw in (0, 1] for channel k of sample i under ``seed`` (integers ≥ 0)."""
+    key = _mix(np.uint64(seed) * _GOLDEN + np.uint64(1))
+    h = _mix(key ^ ((np.uint64(i) * np.uint64(4) + np.uint64(k)) * _GOLDEN))
+    return (float(h >> _S11) + 1.0) * _ULP53
+
+
+@njit(**LEAF)
+def _normal_pair(seed, i, k):
+    """Two standard normals (Box-Muller) from the uniforms of channels k, k + 1."""
+    r = math.sqrt(-2.0 * math.log(uniform(seed, i, k)))
+    a = _TWO_PI * uniform(seed, i, k + 1)
+    return r * math.cos(a), r * math.sin(a)
+
+
+@njit(**LEAF)
+def noise_on(sp):
+    """Whether the sensor array ``sp`` (array or tuple) asks for any noise."""
+    return (sp[0] != 0.0) | (sp[1] != 0.0) | (sp[2] != 0.0) | (sp[3] != 0.0)
+
+
+@njit(**INLINE)
+def measurement_noise(sp, seed, i):
+    """The noise (on y [m], ẏ [m/s], P1 [Pa], P2 [Pa]) of sample i: standard
+    normals scaled by the sensor array ``sp``'s standard deviations."""
+    z0, z1 = _normal_pair(seed, i, 0)
+    z2, z3 = _normal_pair(seed, i, 2)
+    return sp[0] * z0, sp[1] * z1, sp[2] * z2, sp[3] * z3

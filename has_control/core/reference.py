@@ -1,0 +1,90 @@
+"""Reference trajectories x1d(t) [m] with analytic derivatives up to the third.
+
+Kinds (see :class:`has_control.core.params.Reference`): zero, sine (SPEC §4 default,
+0.11·sin 2t), step (septic smooth step, C³), chirp (linear frequency sweep),
+road (an ISO 8608 profile, :mod:`has_control.core.road`, tabulated on the sample
+grid and periodic after it).
+"""
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+from numba import njit
+
+from has_control.core.jit import INLINE
+from has_control.core.params import (
+    N_REFERENCE, REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE, REF_ROAD,
+    REF_ROWS, REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP, Episode, Reference,
+)
+
+
+@njit(**INLINE)
+def reference(rp, t):
+    """(x1d, ẋ1d, ẍ1d, x1d⁽³⁾) at time t [s] for the reference array rp.
+
+    A tabulated kind (road) is defined on its grid t = i·step: t is rounded
+    to the nearest sample, and the table repeats after its last row."""
+    kind = int(rp[REF_KIND])
+    if kind == REF_ROAD:
+        rows = int(rp[REF_ROWS])
+        i = int(math.floor(t / rp[REF_TABLE_STEP] + 0.5)) % rows
+        k = N_REFERENCE + 4 * i
+        return rp[k], rp[k + 1], rp[k + 2], rp[k + 3]
+    a = rp[REF_AMPLITUDE]
+    off = rp[REF_OFFSET]
+    if kind == REF_SINE:
+        w = rp[REF_OMEGA]
+        s = math.sin(w * t)
+        c = math.cos(w * t)
+        return off + a * s, a * w * c, -a * w * w * s, -a * w * w * w * c
+    if kind == REF_STEP:
+        rise = rp[REF_RISE]
+        tau = t - rp[REF_T0]
+        if tau < 0.0:
+            return off, 0.0, 0.0, 0.0
+        if rise <= 0.0 or tau >= rise:
+            return off + a, 0.0, 0.0, 0.0
+        z = tau / rise
+        z2 = z * z
+        z3 = z2 * z
+        z4 = z3 * z
+        s0 = z4 * (35.0 - 84.0 * z + 70.0 * z2 - 20.0 * z3)
+        s1 = z3 * (140.0 - 420.0 * z + 420.0 * z2 - 140.0 * z3)
+        s2 = z2 * (420.0 - 1680.0 * z + 2100.0 * z2 - 840.0 * z3)
+        s3 = z * (840.0 - 5040.0 * z + 8400.0 * z2 - 4200.0 * z3)
+        return off + a * s0, a * s1 / rise, a * s2 / (rise * rise), a * s3 / (rise * rise * rise)
+    if kind == REF_CHIRP:
+        f0 = rp[REF_F0]
+        k = (rp[REF_F1] - f0) / rp[REF_SWEEP]
+        two_pi = 2.0 * math.pi
+        phi = two_pi * (f0 * t + 0.5 * k * t * t)
+        w = two_pi * (f0 + k * t)
+        dw = two_pi * k
+        s = math.sin(phi)
+        c = math.cos(phi)
+        return (off + a * s, a * c * w, a * (-s * w * w + c * dw),
+                a * (-c * w * w * w - 3.0 * s * w * dw))
+    return off, 0.0, 0.0, 0.0
+
+
+@functools.lru_cache(maxsize=32)
+def _road_table(ref: Reference, episode: Episode) -> np.ndarray:
+    """:func:`has_control.core.road.road_table`, built once per (reference, grid):
+    every evaluation of a swarm iteration asks for the same tables."""
+    from has_control.core.road import road_table
+    return road_table(ref, episode)
+
+
+def reference_array(ref: Reference, episode: Episode) -> np.ndarray:
+    """The array :func:`reference` reads: the header of ``ref``, and for a
+    road its table on ``episode``'s grid (one period of the profile,
+    :func:`has_control.core.road.road_table`)."""
+    head = ref.as_array()
+    if ref.kind != "road":
+        return head
+    table = _road_table(ref, episode)
+    head[REF_ROWS] = len(table)
+    head[REF_TABLE_STEP] = episode.step
+    return np.concatenate([head, table.ravel()])

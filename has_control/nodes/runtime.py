@@ -1,0 +1,151 @@
+"""The control loop's QoS and the small message helpers the nodes share.
+
+Names, types, joints and wire layouts of the topics are in
+:mod:`has_control.wire.topics`.
+"""
+from __future__ import annotations
+
+from contextlib import contextmanager
+
+from builtin_interfaces.msg import Time
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+
+from has_control.core.actuator import joint_state
+from has_control.core.params import Actuator
+from has_control.wire.topics import QOS, STATE, STATE_NAMES
+
+
+def qos(relative: str) -> QoSProfile:
+    """The QoS a run topic is offered with (:data:`has_control.wire.topics.QOS`)."""
+    depth, transient_local = QOS[relative]
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if transient_local else DurabilityPolicy.VOLATILE)
+
+
+#: The control loop's state and command (see :data:`has_control.wire.topics.QOS`).
+CONTROL_QOS = qos(STATE)
+
+
+def stamp(sample: int, step_ns: int) -> Time:
+    """Simulation time of sample i: i·Δt, exact in integer nanoseconds."""
+    ns = sample * step_ns
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def sample_of(t: Time, step_ns: int) -> int:
+    """Sample index of a stamp (inverse of :func:`stamp`)."""
+    return round((t.sec * 1_000_000_000 + t.nanosec) / step_ns)
+
+
+def state_message(sample: int, step_ns: int, x, a: Actuator) -> JointState:
+    """The state message of sample ``sample`` as a message object (the nodes
+    publish the same bytes from :mod:`has_control.wire.steps`)."""
+    values = [float(v) for v in joint_state(*(float(s) for s in x), a.as_array())]
+    msg = JointState()
+    msg.header.stamp = stamp(sample, step_ns)
+    msg.name = STATE_NAMES
+    msg.position, msg.velocity, msg.effort = values[0:3], values[3:6], values[6:9]
+    return msg
+
+
+def raw_publish(publisher, tap=None):
+    """A function that publishes serialized bytes (``publish(bytes)``) on
+    ``publisher``, and hands them to ``tap(topic)``, an in-process observer
+    such as the recorder's :meth:`~has_control.nodes.recorder.Recorder.sink`,
+    if one is given."""
+    publish = publisher.publish
+    if tap is None:
+        return publish
+    take = tap(publisher.topic_name)
+
+    def publish_and_tap(data: bytes) -> None:
+        publish(data)
+        take(data)
+    return publish_and_tap
+
+
+@contextmanager
+def borrowed_context(context=None, args=None, domain_id: int | None = None):
+    """``context`` itself, or (None) a new initialised rclpy context that is
+    shut down on the way out."""
+    import rclpy
+    if context is not None:
+        yield context
+        return
+    context = rclpy.Context()
+    rclpy.init(args=args, context=context, domain_id=domain_id)
+    try:
+        yield context
+    finally:
+        rclpy.try_shutdown(context=context)
+
+
+def tee(*taps):
+    """One tap that hands each message to every one of ``taps`` (None: left
+    out), e.g. a bag and a live view at once; a single tap is returned as is."""
+    taps = [t for t in taps if t is not None]
+    if len(taps) <= 1:
+        return taps[0] if taps else None
+
+    def tap(topic: str):
+        takes = tuple(t(topic) for t in taps)
+
+        def take(data: bytes) -> None:
+            for f in takes:
+                f(data)
+        return take
+    return tap
+
+
+def spin(executor, done=lambda: False, period: float = 0.1) -> None:
+    """Serve ``executor`` until ``done()`` or shutdown (Ctrl-C, SIGTERM).
+
+    rclpy 9.1's ``EventsExecutor.spin()`` busy-loops at full CPU and does not
+    return on a signal here; ``spin_once`` with a timeout does neither."""
+    import rclpy
+    while rclpy.ok(context=executor.context) and not done():
+        executor.spin_once(timeout_sec=period)
+
+
+def node_main(args, make_node, serve) -> None:
+    """A node's ``main``: ``with rclpy.init(args=args):``, the node from
+    ``make_node()`` on an EventsExecutor, then ``serve(executor, node)``.
+
+    A bad parameter at start-up ends in one line naming it and exit status 2;
+    Ctrl-C and SIGTERM end the node cleanly."""
+    import gc
+    import sys
+
+    import rclpy
+    from rclpy.exceptions import NameValidationException, ParameterException
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.experimental import EventsExecutor
+
+    from has_control.common.errors import HasControlError
+    prog = (args or sys.argv)[0].split("/")[-1] if (args or sys.argv) else "node"
+    try:
+        with rclpy.init(args=args):
+            try:
+                node = make_node()
+            except (HasControlError, ValueError, ParameterException, NameValidationException) as exc:
+                print(f"{prog}: error: {exc}".splitlines()[0], file=sys.stderr)
+                raise SystemExit(2) from None
+            executor = EventsExecutor()
+            executor.add_node(node)
+            gc.freeze()                    # start-up's objects out of the collector's way of the loop
+            serve(executor, node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+
+
+def trigger_service(node, name: str, action, message: str):
+    """A std_srvs/Trigger service ``name`` that calls ``action()`` and answers ``message``."""
+    from std_srvs.srv import Trigger
+
+    def on_call(request, response):
+        action()
+        response.success = True
+        response.message = message
+        return response
+    return node.create_service(Trigger, name, on_call)

@@ -1,0 +1,299 @@
+"""Tuning sessions recorded to a bag, and resumed from it after a crash.
+
+A session bag (``DIR/session``, rosbag2 MCAP) holds, as std_msgs/String JSON:
+
+* ``/tuner/settings``: the tuning settings and every model parameter, first;
+* ``/tuner/iteration``: per iteration, every particle's position and cost,
+  gbest and the swarm's mean and spread (an :class:`IterationRecord`);
+* ``/tuner/swarm``: per iteration, the swarm state needed to resume (positions,
+  velocities, personal bests, the random generator's state);
+* ``/tuner/result``: the final result (the keys of ``tune --json``);
+
+and the validation run of the best gains under ``/validation/...``, the same
+topics a recorded run has, so ``has-control score DIR/session`` scores it.
+
+After each iteration the bag's chunk is closed and flushed, so killing the
+tuner at any moment loses at most the iteration in progress.
+:func:`resume` reads what survived (a truncated bag included) and returns the
+swarm as it was after the last complete iteration; continuing it gives
+exactly the result of an uninterrupted run.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import time
+from pathlib import Path
+
+from has_control.bag import (
+    PARAMETERS_KEY, STRING, BagError, BagWriter, QosSpec, parameters_json, read_bag, warn, write_trace,
+)
+from has_control.common.errors import HasControlError
+from has_control.common.files import DirectoryLock
+from has_control.tuning.swarm import Swarm, record_dict, record_from
+from has_control.tuning.tuner import TuneResult, Tuning, tuning_from_json, tuning_json
+
+SESSION = "session"
+SETTINGS, ITERATION, SWARM, RESULT = "/tuner/settings", "/tuner/iteration", "/tuner/swarm", "/tuner/result"
+VALIDATION = "/validation"
+TUNING_KEY = "has_control/tuning"
+LOCK = ".lock"                      # DIR/.lock: flock'ed by the one process writing the session
+RESULT_FILE = "tune.json"           # written last: its presence says the session is finished
+
+
+def _string(text: str) -> bytes:
+    from has_control.bag import typestore
+    msg = typestore().types[STRING](data=text)
+    return bytes(typestore().serialize_cdr(msg, STRING))
+
+
+def _unstring(data: bytes) -> str:
+    n = int.from_bytes(data[4:8], "little")
+    return data[8:8 + n - 1].decode()
+
+
+def _json(data: bytes) -> dict | None:
+    """The JSON object a std_msgs/String message carries, None if it is damaged."""
+    try:
+        doc = json.loads(_unstring(data))
+    except (ValueError, UnicodeDecodeError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+class Session:
+    """Writes one tuning session's bag (see the module's docstring)."""
+
+    def __init__(self, directory: str | Path, tuning: Tuning, cfg, evaluator: str = "batch",
+                 _copy_from=None, _lock: DirectoryLock | None = None, replace: bool = False):
+        self.directory = Path(directory)
+        self.path = self.directory / SESSION
+        self.lock = _lock or DirectoryLock(self.directory, LOCK, "the tuning session")
+        if _copy_from is None:
+            self._clear(replace)
+        settings = {"tuning": tuning_json(tuning), "evaluator": evaluator,
+                    "parameters": json.loads(parameters_json(cfg))}
+        self.writer = BagWriter(self.path, {PARAMETERS_KEY: parameters_json(cfg),
+                                            TUNING_KEY: json.dumps(settings["tuning"])})
+        for topic in (SETTINGS, ITERATION, SWARM, RESULT):
+            self.writer.add_topic(topic, STRING, QosSpec(depth=10, transient_local=topic == SETTINGS))
+        if _copy_from is None:
+            self.writer.write(SETTINGS, time.time_ns(), _string(json.dumps(settings)))
+        else:
+            for topic, t, data in _copy_from:
+                self.writer.write(topic, t, data)
+        self.writer.sync()
+
+    def _clear(self, replace: bool) -> None:
+        """Refuse an existing session or result here, or (``replace``) remove them."""
+        old = [p for p in (self.path, self.directory / RESULT_FILE, self.directory / (SESSION + ".interrupted"))
+               if p.exists()]
+        if old and not replace:
+            self.lock.release()
+            raise HasControlError(f"{old[0]}: exists already; --force to overwrite")
+        for p in old:
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+    def release(self) -> None:
+        """Let another process write this session (also when this one ends)."""
+        self.lock.release()
+
+    def record(self, swarm: Swarm) -> None:
+        """After an iteration: its record and the swarm's state, then flush."""
+        now = time.time_ns()
+        self.writer.write(ITERATION, now, _string(json.dumps(record_dict(swarm.history[-1]))))
+        self.writer.write(SWARM, now, _string(json.dumps(swarm.state_dict(history=False))))
+        self.writer.sync()
+
+    def finish(self, result: dict, validation_trace=None, cfg=None) -> Path:
+        """The result, the validation run of the best gains, and close the bag."""
+        self.writer.write(RESULT, time.time_ns(), _string(json.dumps(result)))
+        if validation_trace is not None:
+            write_trace(self.writer, validation_trace, cfg, VALIDATION, log_offset_ns=time.time_ns())
+        return self.writer.close()
+
+    def close(self) -> Path:
+        return self.writer.close()
+
+
+@dataclasses.dataclass
+class Resumed:
+    swarm: Swarm
+    tuning: Tuning
+    cfg: object
+    evaluator: str
+    session: Session
+    result: dict | None = None          # the stored result of a session whose final writes were cut short
+
+
+def resume(directory: str | Path, on_warning=warn) -> Resumed:
+    """The session in ``directory`` at its last good iteration, writing on.
+
+    The directory is locked first (a second resume is refused). The surviving
+    bag is moved to ``session.interrupted``, its good iterations are copied
+    into a fresh ``session`` bag (flushed), and only then is the old one
+    deleted: a crash during resume loses nothing. Iterations are good up to
+    the first one whose record or swarm state is missing, damaged or
+    inconsistent (a corrupted chunk is skipped by the reader); the session
+    resumes from the one before, with a warning, which gives the same
+    result. A session whose result is stored but whose ``tune.json`` is not
+    (the final writes were interrupted) comes back with ``result`` set.
+    """
+    from has_control.config import build_config
+    d = Path(directory)
+    old = d / (SESSION + ".interrupted")
+    cur = d / SESSION
+    if not (old.exists() or cur.exists()):
+        raise BagError(f"{cur}: no session bag to resume (was the session started with --out {d}?)")
+    lock = DirectoryLock(d, LOCK, "the tuning session")
+    if old.exists():                      # an earlier resume was interrupted: start from its source
+        if cur.exists():
+            shutil.rmtree(cur)
+    elif cur.exists():
+        cur.rename(old)
+    bag = read_bag(old, topics=(SETTINGS, ITERATION, SWARM, RESULT), on_warning=on_warning)
+    results = [r for r in (_json(x) for _, x in bag.messages.get(RESULT) or []) if r is not None]
+    if results and (d / RESULT_FILE).exists():
+        old.rename(cur)
+        lock.release()
+        raise BagError(f"{cur}: the session has finished already (see {d / RESULT_FILE})")
+    settings = bag.messages.get(SETTINGS) or []
+    s = _json(settings[0][1]) if settings else None
+    try:
+        tuning = tuning_from_json(s["tuning"])
+    except (TypeError, KeyError, ValueError, AttributeError):
+        lock.release()
+        raise BagError(f"{old}: no readable {SETTINGS} message; cannot resume") from None
+    cfg = build_config(s.get("parameters") or {}, source=f"{old} ({SETTINGS})")
+    states = bag.messages.get(SWARM) or []
+    records = bag.messages.get(ITERATION) or []
+    k, swarm = _last_good_iteration(records, states)
+    if k < max(len(records), len(states)) or not bag.complete:
+        on_warning(f"{old}: records damaged or missing after iteration {k}: resuming from iteration {k}, "
+                   "the last good one")
+    if swarm is None:
+        swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
+    keep = [(SETTINGS, *settings[0])]
+    keep += [(ITERATION, *r) for r in records[:k]] + [(SWARM, *x) for x in states[:k]]
+    keep.sort(key=lambda m: m[1])
+    session = Session(d, tuning, cfg, s.get("evaluator", "batch"), _copy_from=keep, _lock=lock)
+    shutil.rmtree(old)
+    return Resumed(swarm, tuning, cfg, s.get("evaluator", "batch"), session,
+                   results[-1] if results and swarm.done else None)
+
+
+def _last_good_iteration(records, states) -> tuple[int, Swarm | None]:
+    """The largest k such that iterations 0..k-1 each have a record and a
+    swarm state that parse and agree, and the swarm restored from state k-1."""
+    k = 0
+    parsed = []
+    for (_, r), (_, x) in zip(records, states):
+        rec, state = _json(r), _json(x)
+        if rec is None or state is None or rec.get("iteration") != k or state.get("iteration") != k + 1:
+            break
+        parsed.append((rec, state))
+        k += 1
+    while k:
+        state = dict(parsed[k - 1][1], history=[rec for rec, _ in parsed[:k]])
+        try:
+            swarm = Swarm.from_state(state)
+            if len(swarm.history) == k and all(h.iteration == i for i, h in enumerate(swarm.history)):
+                return k, swarm
+        except (HasControlError, KeyError, TypeError, ValueError, IndexError):
+            pass
+        k -= 1
+    return 0, None
+
+
+def swarm_result(directory: str | Path):
+    """The session's :class:`SwarmResult` rebuilt from its iteration records
+    (for the convergence and gain figures)."""
+    import math
+    from has_control.tuning.swarm import SwarmResult
+    bag = read_bag(Path(directory) / SESSION, topics=(ITERATION, RESULT), on_warning=lambda m: None)
+    history = [record_from(json.loads(_unstring(d))) for _, d in bag.messages.get(ITERATION, [])]
+    if not history:
+        raise BagError(f"{Path(directory) / SESSION}: no iteration records")
+    last = history[-1]
+    return SwarmResult(last.best_position, last.best_cost, len(history),
+                       sum(len(h.costs) for h in history), "from the session bag",
+                       math.isfinite(last.best_cost), 0, history)
+
+
+@dataclasses.dataclass
+class SessionRun:
+    """What a tuning session gave: the result, the keys of ``tune --json``,
+    the session bag (None without a directory) and its directory."""
+
+    result: TuneResult
+    out: dict
+    bag: Path | None
+    directory: Path | None
+
+
+def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, resume_dir: str | Path | None = None,
+                replace: bool = False, evaluator: str = "batch", make_objective=None, on_iteration=None,
+                record_validation=None, artefacts=None, announce=None, on_warning=warn, batch=None) -> SessionRun:
+    """One tuning session, as both front ends run it (``has-control tune`` and the tuner node).
+
+    Opens the session in ``directory`` (or resumes the one in ``resume_dir``
+    at its last good iteration; ``cfg`` and ``tuning`` then come from it),
+    tunes with the objective ``make_objective(cfg)`` returns (called once the
+    session's cfg is known; None, or no factory: the batch evaluator),
+    recording every
+    iteration after ``on_iteration(swarm)``, and finishes the session: the
+    result and the validation run of the best gains under ``/validation``
+    (``record_validation(gains, writer, cfg)`` records it, e.g. through the
+    node graph; default: the in-process trace), ``artefacts(result, directory)``
+    (figures), ``gains.yaml`` (a ``--params-file``) and, last, ``tune.json``
+    (written then renamed: its presence says the session finished).
+    ``announce(message)`` hears what a resume found. ``batch``: the batch
+    evaluator (see :func:`~has_control.tuning.tuner.tune`; a Dask one gives the
+    same bits, so a session may resume on another).
+    """
+    from has_control.config import write_gains_params
+    from has_control.common.files import write_atomic
+    from has_control.tuning.tuner import tune
+    swarm = stored = session = None
+    if resume_dir is not None:
+        r = resume(resume_dir, on_warning)
+        cfg, tuning, swarm, session, stored = r.cfg, r.tuning, r.swarm, r.session, r.result
+        directory = resume_dir
+        if announce is not None:
+            announce(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}"
+                     + (" (finished; writing its results)" if stored else ""))
+    elif directory is not None:
+        session = Session(directory, tuning, cfg, evaluator, replace=replace)
+
+    def each_iteration(sw: Swarm) -> None:
+        if on_iteration is not None:
+            on_iteration(sw)
+        if session is not None:
+            session.record(sw)
+    try:
+        objective = make_objective(cfg) if make_objective is not None else None
+        if stored is not None:
+            res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"],
+                             stored.get("scenarios", 0), stored.get("aggregate", ""))
+        else:
+            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm, objective=objective, batch=batch)
+        out = res.as_json()
+        bag = None
+        if session is not None:
+            d = session.directory
+            if record_validation is not None:
+                record_validation(res.gains, session.writer, cfg)
+                bag = session.finish(out)
+            else:
+                from has_control.core.episode import simulate
+                bag = session.finish(out, simulate(cfg, res.gains), cfg)
+            if artefacts is not None:
+                artefacts(res, d)
+            write_gains_params(d / "gains.yaml", res.gains, f"has_control tuning: {res.variant}, seed {res.seed}, "
+                               f"J = {res.result.fun:.6e}; use with --ros-args --params-file")
+            write_atomic(d / RESULT_FILE, json.dumps(out, indent=1) + "\n")
+    finally:
+        if session is not None:
+            session.release()
+    return SessionRun(res, out, bag, Path(directory) if directory is not None else None)

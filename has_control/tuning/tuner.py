@@ -1,0 +1,195 @@
+"""Tune the ABC gains (k1, k2, k3) with a particle swarm over the batch evaluator.
+
+Depends inward only: swarm (optimiser) and episode (evaluator). The tuner
+node uses the same :func:`load_tuning` and the same :class:`Swarm`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+import numpy as np
+
+from has_control.config import check_gain, default_config_files, finite_number, read_parameter_files
+from has_control.core.episode import evaluate_configs
+from has_control.common.errors import ConfigError, shown
+from has_control.core.params import Config
+from has_control.core.scenarios import Aggregate, parse_aggregate
+from has_control.config import Scenario, scenario_configs, scenarios_from_json
+from has_control.tuning.swarm import Swarm, SwarmError, SwarmResult, SwarmSettings, minimize
+
+TUNER_FILE = default_config_files()[0].parent / "tuner.yaml"
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """A tuning session's settings: the swarm, the search box and the seed,
+    and what a candidate is scored on: the nominal episode, or (robust
+    tuning) the ``aggregate`` of its costs over ``scenarios``."""
+
+    swarm: SwarmSettings = SwarmSettings()
+    lower: tuple[float, float, float] = (150.0, 150.0, 150.0)
+    upper: tuple[float, float, float] = (1200.0, 800.0, 800.0)
+    seed: int = 1
+    scenarios: tuple[Scenario, ...] = ()
+    aggregate: Aggregate = Aggregate()
+
+    @property
+    def bounds(self):
+        return (np.array(self.lower), np.array(self.upper))
+
+    def replace(self, **changes) -> "Tuning":
+        """Override seed, lower, upper or any SwarmSettings field; validated."""
+        top = {k: changes.pop(k) for k in ("seed", "lower", "upper", "scenarios", "aggregate") if k in changes}
+        t = dataclasses.replace(self, swarm=dataclasses.replace(self.swarm, **changes), **top)
+        t.swarm.validate()
+        if isinstance(t.seed, bool) or not isinstance(t.seed, int) or not 0 <= t.seed < 2**64:
+            raise SwarmError(f"swarm.seed = {shown(t.seed)}: must be a whole number in [0, 2^64)")
+        Swarm(t.bounds, dataclasses.replace(t.swarm, particles=1, iterations=1), 0)    # bounds check
+        for name in ("lower", "upper"):
+            for i, v in enumerate(getattr(t, name)):
+                why = check_gain(v)
+                if why:
+                    raise SwarmError(f"bounds: swarm.{name}[{i}] = {v:g}: a gain {why}")
+        return t
+
+
+_INT_KEYS = {"particles", "iterations", "seed"}
+_STR_KEYS = {"variant", "crazy_redraw", "crazy_probability"}
+_LIST_KEYS = {"lower", "upper"}
+
+
+def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] | None = None,
+                           base: Tuning | None = None) -> Tuning:
+    """Validated :class:`Tuning` from flat ``swarm.*`` parameters (others ignored)."""
+    t = base or Tuning()
+    fields = {f.name for f in dataclasses.fields(SwarmSettings)} | {"seed"} | _LIST_KEYS
+    changes: dict[str, Any] = {}
+    where: dict[str, str] = {}
+    for key, value in flat.items():
+        if not key.startswith("swarm."):
+            continue
+        name = key[len("swarm."):]
+        where[name] = (sources or {}).get(key, "parameters")
+
+        def bad(why):
+            return ConfigError(f"{where[name]}: {key} = {shown(value)}: {why}")
+        if name not in fields:
+            raise bad("unknown parameter")
+        if name in _INT_KEYS:
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise bad("expected a whole number")
+        elif name in _STR_KEYS:
+            if not isinstance(value, str):
+                raise bad("expected a string")
+        elif name in _LIST_KEYS:
+            numbers = [finite_number(v) for v in value] if isinstance(value, (list, tuple)) else []
+            if len(numbers) != 3 or any(isinstance(v, str) for v in numbers):
+                raise bad("expected a list of three finite numbers")
+            value = tuple(numbers)
+        else:
+            number = finite_number(value)
+            if isinstance(number, str):
+                raise bad(number)
+            value = number
+        changes[name] = value
+    try:
+        return t.replace(**changes)
+    except SwarmError as exc:
+        msg = str(exc)
+        culprit = next((n for n in changes if msg.startswith(f"swarm.{n} ")), None)
+        if culprit is None and msg.startswith("bounds"):
+            named = [n for n in ("lower", "upper") if n in changes and f"swarm.{n}[" in msg]
+            culprit = next(iter(named or [n for n in ("lower", "upper") if n in changes]), None)
+        origin = where.get(culprit, "parameters") if culprit else ", ".join(sorted(set(where.values())))
+        raise ConfigError(f"{origin}: {msg}") from None
+
+
+def tuning_parameters(t: Tuning) -> dict[str, Any]:
+    """Flat ``swarm.*`` parameters of a Tuning (inverse of :func:`tuning_from_parameters`)."""
+    out = {f"swarm.{k}": v for k, v in dataclasses.asdict(t.swarm).items()}
+    out.update({"swarm.seed": t.seed, "swarm.lower": list(t.lower), "swarm.upper": list(t.upper)})
+    return out
+
+
+def tuning_json(t: Tuning) -> dict:
+    """A Tuning as JSON-ready data (a session bag's settings; inverse: :func:`tuning_from_json`)."""
+    d = {"swarm": dataclasses.asdict(t.swarm), "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
+    if t.scenarios:
+        d.update(scenarios=[s.as_json() for s in t.scenarios], aggregate=str(t.aggregate))
+    return d
+
+
+def tuning_from_json(d: dict) -> Tuning:
+    return Tuning(SwarmSettings(**d["swarm"]), tuple(d["lower"]), tuple(d["upper"]), int(d["seed"]),
+                  scenarios_from_json(d.get("scenarios", ())), parse_aggregate(d.get("aggregate", "mean")))
+
+
+def load_tuning(paths: Iterable[str | Path] = (), defaults: bool = True) -> Tuning:
+    """Tuning settings from config/tuner.yaml (if ``defaults``) and ``paths``."""
+    files = ([TUNER_FILE] if defaults else []) + [Path(p) for p in paths]
+    return tuning_from_parameters(*read_parameter_files(files))
+
+
+@dataclass
+class TuneResult:
+    """A finished tuning session: the swarm's result plus what it took."""
+
+    variant: str
+    seed: int
+    result: SwarmResult
+    seconds: float
+    scenarios: int = 0              # robust tuning: J is the aggregate over this many scenarios
+    aggregate: str = ""
+
+    @property
+    def gains(self) -> tuple[float, float, float]:
+        return tuple(float(v) for v in self.result.x)
+
+    def as_json(self) -> dict:
+        """Keys of ``has-control tune --json``."""
+        from has_control.common.json_numbers import to_json
+        return {"variant": self.variant, "seed": self.seed, "gains": list(self.gains),
+                "J": to_json(self.result.fun), "iterations": self.result.nit,
+                "evaluations": self.result.nfev, "seconds": self.seconds,
+                "history": [to_json(h.best_cost) for h in self.result.history],
+                **({"scenarios": self.scenarios, "aggregate": self.aggregate,
+                    "episodes": self.result.nfev * self.scenarios} if self.scenarios else {})}
+
+
+def tune(cfg: Config | None = None, tuning: Tuning | None = None,
+         callback: Callable[[Swarm], bool | None] | None = None,
+         swarm: Swarm | None = None,
+         objective: Callable[[np.ndarray], np.ndarray] | None = None,
+         batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> TuneResult:
+    """Run one tuning session (``swarm`` to resume one).
+
+    ``objective`` maps the (N, 3) candidate gains to N costs J; by default
+    the batch evaluator over ``cfg`` (robust tuning: the aggregate of the
+    costs over ``tuning.scenarios``). The tuner node passes one that runs
+    every candidate through the node graph. ``batch(gains, cfgs)`` is the
+    batch evaluator, with the contract of
+    :func:`~has_control.core.episode.evaluate_configs` (default: that function,
+    in this process; :mod:`has_control.tuning.dask_evaluator` gives one on Dask).
+    """
+    cfg = cfg or Config()
+    tuning = tuning or Tuning()
+    if swarm is None:
+        swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
+    if objective is None:
+        run = batch or evaluate_configs
+        if tuning.scenarios:
+            configs = scenario_configs(cfg, tuning.scenarios)
+
+            def objective(k):
+                return tuning.aggregate(run(k, configs)[:, :, 0])
+        else:
+            def objective(k):
+                return run(k, [cfg])[:, 0, 0]
+    t0 = time.perf_counter()
+    result = minimize(objective, None, swarm=swarm, callback=callback)
+    return TuneResult(swarm.settings.variant, swarm.seed, result, time.perf_counter() - t0,
+                      len(tuning.scenarios), str(tuning.aggregate) if tuning.scenarios else "")

@@ -1,0 +1,165 @@
+"""One sample of the plant and of the controller, on serialized messages.
+
+The nodes' fast path: each callback is one compiled call that decodes the
+message in hand, runs the one implementation of the physics or the control
+law (:func:`~has_control.core.actuator.plant_step`,
+:func:`~has_control.core.abc_controller.abc_law`, ``adapt``,
+:func:`~has_control.core.reference.reference`, exactly as the episode kernel
+calls them) and encodes the answer into preallocated buffers laid out by
+:mod:`has_control.wire.topics`. Nothing is allocated per sample.
+
+A decoder returns the sample index of the message, or
+:data:`~has_control.wire.codec.MALFORMED` (another layout, a stamp off the grid) or
+:data:`~has_control.wire.codec.NOT_FINITE` (a NaN or infinite value); either is
+refused before it reaches the state.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from has_control.core.abc_controller import abc_law, adapt
+from has_control.core.actuator import diverged, joint_state, valve_plant_step
+from has_control.core.episode import TRACE_COLUMNS, put_trace_row
+from has_control.core.jit import KERNEL
+from has_control.core.noise import measurement_noise, noise_on
+from has_control.core.reference import reference
+from has_control.wire.topics import (CLOCK_LAYOUT, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, REFERENCE_LAYOUT,
+                                     STATE_LAYOUT)
+from has_control.wire.codec import MALFORMED, NOT_FINITE, get_f64, matches, put_f64, put_stamp, sample_of_stamp
+
+# Layouts as module constants: numba freezes them into the compiled code.
+_STATE_T, _STATE_FIXED, _STATE_V = STATE_LAYOUT.template, STATE_LAYOUT.fixed, STATE_LAYOUT.values
+_COMMAND_T, _COMMAND_FIXED, _COMMAND_V = COMMAND_LAYOUT.template, COMMAND_LAYOUT.fixed, COMMAND_LAYOUT.values
+_INTERNALS_V = CONTROLLER_STATE_LAYOUT.values
+_REFERENCE_V = REFERENCE_LAYOUT.values
+assert CLOCK_LAYOUT.stamped and len(CLOCK_LAYOUT.values) == 0
+
+#: Slots of the controller's memory array (float64).
+A1_HAT, A2_HAT, X3D_PREV, HAS_PREV, SCRATCH = range(5)
+CONTROLLER_MEMORY = 5
+
+
+def scratch() -> np.ndarray:
+    """A float64[1] through which the bytes of one value pass."""
+    return np.zeros(1)
+
+
+# --- plant --------------------------------------------------------------------
+
+@njit(**KERNEL)
+def encode_state(x, ap, sample, step_ns, state, clock, scr):
+    """State x = (y, ẏ, P1, P2) of ``sample`` into the state and clock messages."""
+    sb = scr.view(np.uint8)
+    ns = sample * step_ns
+    put_stamp(state, ns)
+    put_stamp(clock, ns)
+    values = joint_state(x[0], x[1], x[2], x[3], ap)
+    for k in range(9):
+        put_f64(state, _STATE_V[k], values[k], scr, sb)
+
+
+@njit(**KERNEL)
+def plant_sample(x, u, pp, dt, y_limit, sample, step_ns, state, clock, scr):
+    """Advance x = (y, ẏ, P1, P2, spool) in place by one step of the plant of
+    plant array ``pp`` with valve command u [m] and encode the new state as
+    sample ``sample`` (the next index). Returns True if it diverged."""
+    y, v, p1, p2, sv = valve_plant_step(x[0], x[1], x[2], x[3], x[4], u, pp, dt)
+    x[0] = y
+    x[1] = v
+    x[2] = p1
+    x[3] = p2
+    x[4] = sv
+    encode_state(x, pp, sample, step_ns, state, clock, scr)
+    return diverged(y, v, p1, p2, y_limit)
+
+
+@njit(**KERNEL)
+def command_of(data, step_ns, scr):
+    """(sample index or MALFORMED/NOT_FINITE, u [m]) of a command message."""
+    if not matches(data, _COMMAND_T, _COMMAND_FIXED):
+        return MALFORMED, 0.0
+    i = sample_of_stamp(data, step_ns)
+    if i < 0:
+        return MALFORMED, 0.0
+    u = get_f64(data, _COMMAND_V[0], scr, scr.view(np.uint8))
+    if not math.isfinite(u):
+        return NOT_FINITE, 0.0
+    return i, u
+
+
+# --- controller ----------------------------------------------------------------
+
+@njit(**KERNEL)
+def controller_sample(data, mem, gains, ap, cp, rp, sp, seed, dt, step_ns, command, internals, ref, trace):
+    """Answer one state message: the command (stamped like the state), the
+    internals [t, e1, e2, e3, â1, â2, x1d] and the reference [t, x1d, ẋ1d, ẍ1d,
+    x1d⁽³⁾], then adapt ``mem`` (â1, â2, x3d of the previous sample). The law
+    reads the state plus the measurement noise of sample i (sensor array
+    ``sp``, ``seed``; none when ``sp`` is all 0), as the episode kernel does.
+
+    Writes row i of ``trace`` (the episode's TRACE_COLUMNS: the state as
+    received, the true e1 = x1d − y) when i < len(trace).
+    Returns the sample index i, or MALFORMED / NOT_FINITE (nothing written).
+    """
+    if not matches(data, _STATE_T, _STATE_FIXED):
+        return MALFORMED
+    i = sample_of_stamp(data, step_ns)
+    if i < 0:
+        return MALFORMED
+    scr = mem[SCRATCH:SCRATCH + 1]
+    sb = scr.view(np.uint8)
+    x1 = get_f64(data, _STATE_V[0], scr, sb)       # position[0] = y
+    x2 = get_f64(data, _STATE_V[3], scr, sb)       # velocity[0] = ẏ
+    p1 = get_f64(data, _STATE_V[7], scr, sb)       # effort[1] = P1
+    p2 = get_f64(data, _STATE_V[8], scr, sb)       # effort[2] = P2
+    if not (math.isfinite(x1) and math.isfinite(x2) and math.isfinite(p1) and math.isfinite(p2)):
+        return NOT_FINITE
+    t = i * dt
+    r0, r1, r2, r3 = reference(rp, t)
+    a1_hat = mem[A1_HAT]
+    a2_hat = mem[A2_HAT]
+    m1, m2, m3, m4 = x1, x2, p1, p2
+    if noise_on(sp):
+        n1, n2, n3, n4 = measurement_noise(sp, seed, i)
+        m1, m2, m3, m4 = x1 + n1, x2 + n2, p1 + n3, p2 + n4
+    u, e1, e2, e3, rate1, rate2, x3d = abc_law(
+        m1, m2, m3, m4, a1_hat, a2_hat, mem[X3D_PREV], mem[HAS_PREV] > 0.0,
+        r0, r1, r2, r3, gains[0], gains[1], gains[2], ap, cp, dt)
+    for k in range(4, 12):
+        command[k] = data[k]                        # the stamp of the state it answers
+    put_f64(command, _COMMAND_V[0], u, scr, sb)
+    row = (t, e1, e2, e3, a1_hat, a2_hat, r0)
+    for k in range(7):
+        put_f64(internals, _INTERNALS_V[k], row[k], scr, sb)
+    rrow = (t, r0, r1, r2, r3)
+    for k in range(5):
+        put_f64(ref, _REFERENCE_V[k], rrow[k], scr, sb)
+    if i < trace.shape[0]:
+        put_trace_row(trace[i], t, r0, x1, x2, p1, p2, u, r0 - x1, e2, e3, a1_hat, a2_hat)
+    mem[A1_HAT], mem[A2_HAT] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
+    mem[X3D_PREV] = x3d
+    mem[HAS_PREV] = 1.0
+    return i
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every sample function the nodes call,
+    for the argument types they pass, before anything joins the graph (and,
+    in ``has-control stack``, while Ctrl-C still ends the process quietly)."""
+    from has_control.core.episode import EpisodeArrays
+    from has_control.core.params import Config
+    cfg = Config()
+    arr = EpisodeArrays.from_config(cfg)
+    step_ns = int(round(cfg.episode.step * 1e9))
+    state, clock, scr = STATE_LAYOUT.buffer(), CLOCK_LAYOUT.buffer(), scratch()
+    x = np.append(arr.x0, 0.0)
+    encode_state(x, arr.plant, 0, step_ns, state, clock, scr)
+    plant_sample(x, 0.0, arr.plant, cfg.episode.step, cfg.episode.y_limit, 1, step_ns, state, clock, scr)
+    command_of(bytes(state), step_ns, scr)
+    controller_sample(bytes(state), np.zeros(CONTROLLER_MEMORY), np.array(cfg.gains.as_tuple()), arr.actuator,
+                      arr.adaptation, arr.reference, arr.sensor, arr.seed, cfg.episode.step, step_ns,
+                      COMMAND_LAYOUT.buffer(), CONTROLLER_STATE_LAYOUT.buffer(), REFERENCE_LAYOUT.buffer(),
+                      np.zeros((0, len(TRACE_COLUMNS))))

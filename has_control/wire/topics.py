@@ -1,0 +1,63 @@
+"""The control loop's topics: names, types, joints, columns and wire layouts, in one place.
+
+Names are relative to the run's namespace. State and command are
+``sensor_msgs/JointState`` in the bond-graph reading (a hydraulic port's
+effort is pressure, its displacement is volume):
+
+=========  ================  =====================  =================
+joint      position          velocity               effort
+=========  ================  =====================  =================
+actuator   y [m]             ẏ [m/s]                F = A1·P1 − A2·P2 [N]
+chamber_1  V1 [m³]           V̇1 = A1·ẏ [m³/s]       P1 [Pa]
+chamber_2  V2 [m³]           V̇2 = −A2·ẏ [m³/s]      P2 [Pa]
+=========  ================  =====================  =================
+
+The command is joint ``valve``, position ``[u]`` (spool displacement [m]),
+stamped with the state it answers. The controller's internals are
+``std_msgs/Float64MultiArray`` whose columns lead with the sample's time t
+(the type has no header); the layout's one dimension is labelled with the
+column names. No ROS import: the nodes turn these into
+publishers, the bag code into channels.
+"""
+from __future__ import annotations
+
+from has_control.wire import codec
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+CLOCK = "rosgraph_msgs/msg/Clock"
+FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
+STRING = "std_msgs/msg/String"
+
+STATE, COMMAND, CLOCK_TOPIC = "state", "command", "clock"
+REFERENCE, CONTROLLER_STATE, GAINS = "controller/reference", "controller/controller_state", "controller/gains"
+
+STATE_NAMES = ["actuator", "chamber_1", "chamber_2"]
+COMMAND_NAMES = ["valve"]
+
+#: Columns of the Float64MultiArray topics (units: s, then SI).
+CONTROLLER_STATE_COLUMNS = ("t", "e1", "e2", "e3", "a1_hat", "a2_hat", "x1d")
+REFERENCE_COLUMNS = ("t", "x1d", "x1d_dot", "x1d_ddot", "x1d_dddot")
+GAINS_COLUMNS = ("t", "k1", "k2", "k3")
+
+#: What each run topic is offered with: (history depth, transient local). All
+#: are reliable. The loop's state and command keep the last one (lock-step
+#: must not lose a sample, and a stale one is never worth delivering); the
+#: gains in force are kept for late joiners.
+QOS = {STATE: (1, False), COMMAND: (1, False), CLOCK_TOPIC: (10, False),
+       REFERENCE: (10, False), CONTROLLER_STATE: (10, False), GAINS: (1, True)}
+
+#: Topics of a recorded run and their types.
+RUN_TOPICS = {STATE: JOINT_STATE, COMMAND: JOINT_STATE, CLOCK_TOPIC: CLOCK,
+              REFERENCE: FLOAT64_ARRAY, CONTROLLER_STATE: FLOAT64_ARRAY, GAINS: FLOAT64_ARRAY}
+
+#: Wire layouts of the messages the loop exchanges every sample.
+STATE_LAYOUT = codec.joint_state_layout(STATE_NAMES, 3, 3, 3)
+COMMAND_LAYOUT = codec.joint_state_layout(COMMAND_NAMES, 1, 0, 0)
+CLOCK_LAYOUT = codec.clock_layout()
+CONTROLLER_STATE_LAYOUT = codec.float64_array_layout(CONTROLLER_STATE_COLUMNS)
+REFERENCE_LAYOUT = codec.float64_array_layout(REFERENCE_COLUMNS)
+GAINS_LAYOUT = codec.float64_array_layout(GAINS_COLUMNS)
+
+#: The layout of each run topic (by relative name).
+LAYOUTS = {STATE: STATE_LAYOUT, COMMAND: COMMAND_LAYOUT, CLOCK_TOPIC: CLOCK_LAYOUT,
+           CONTROLLER_STATE: CONTROLLER_STATE_LAYOUT, REFERENCE: REFERENCE_LAYOUT, GAINS: GAINS_LAYOUT}
