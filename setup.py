@@ -25,7 +25,7 @@ setup(
                     "dask": ["dask", "distributed"]},      # --dask: the batch evaluator on a Dask cluster
     entry_points={
         "console_scripts": [
-            "has-control = has_control.cli.main:main",
+            "has-control = has_control.cli:main",
             "plant = has_control.nodes.plant_node:main",
             "controller = has_control.nodes.controller_node:main",
             "tuner = has_control.nodes.tuner_node:main",

@@ -35,7 +35,7 @@ def cli(*args, domain=None):
     env = dict(os.environ)
     if domain is not None:
         env["ROS_DOMAIN_ID"] = str(domain)
-    return subprocess.run([sys.executable, "-m", "has_control.cli.main", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
                           capture_output=True, text=True, timeout=600, env=env)
 
 

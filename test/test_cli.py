@@ -9,7 +9,7 @@ from test_episode import PINNED
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "has_control.cli.main", *args],
+    return subprocess.run([sys.executable, "-m", "has_control.cli", *args],
                           capture_output=True, text=True, timeout=300)
 
 

@@ -336,7 +336,7 @@ def test_scaling_model_of_the_bench():
 def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
     """Issue #14's "done when": ``tune --scenarios config/scenarios.yaml --aggregate cvar:0.2
     --dask local:2 --json`` gives the result it gives without --dask (a short run of it)."""
-    from has_control.cli.main import main
+    from has_control.cli import main
     from has_control.config import CONFIG_DIR
     args = ["tune", "--scenarios", str(CONFIG_DIR / "scenarios.yaml"), "--aggregate", "cvar:0.2",
             "--particles", "16", "--iterations", "3", "--duration", "1.2", "--json"]

@@ -84,7 +84,7 @@ def test_stack_serves_the_state_live_as_ros2msg_cdr(domain_id):
     decodes JointState messages whose stamps advance by 0.3 ms."""
     port = _free_port()
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    stack = subprocess.Popen([sys.executable, "-m", "has_control.cli.main", "stack", "--duration", "2", "--realtime",
+    stack = subprocess.Popen([sys.executable, "-m", "has_control.cli", "stack", "--duration", "2", "--realtime",
                               "--foxglove", str(port)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                              text=True)
     try:
@@ -150,7 +150,7 @@ def test_a_port_in_use_is_one_line_and_exit_2():
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        r = subprocess.run([sys.executable, "-m", "has_control.cli.main", "stack", "--duration", "2", "--foxglove",
+        r = subprocess.run([sys.executable, "-m", "has_control.cli", "stack", "--duration", "2", "--foxglove",
                             str(port)], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.startswith(f"has-control: error: --foxglove {port}: ") and r.stderr.count("\n") == 1
@@ -183,7 +183,7 @@ def test_a_bad_foxglove_port_parameter_is_refused(context, value):  # noqa: F811
 
 def test_a_bad_foxglove_port_ends_the_node_with_one_line(domain_id):
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    r = subprocess.run([sys.executable, "-m", "has_control.cli.main", "controller", "--ros-args", "-p",
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p",
                         "foxglove_port:=-1"], env=env, capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert r.stderr.strip().endswith("error: parameter foxglove_port = -1: expected a port 1..65535 or 0 (off)")

@@ -60,7 +60,7 @@ def test_malformed_and_non_finite_messages_are_counted_and_ignored(context):
 def test_a_second_controller_on_the_command_topic_fails_the_run_loudly(domain_id):
     """Another controller answers the same states with other gains: the stack
     refuses to report a number instead of scoring a mixture."""
-    cmd = [sys.executable, "-m", "has_control.cli.main", "controller", "--ros-args", "-p", "publish_internals:=false",
+    cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false",
            "-p", "gains.k1:=400.0"]
     import os
     other = subprocess.Popen(cmd, env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
@@ -105,7 +105,7 @@ def test_runtime_changes_the_loop_cannot_take_are_refused(context):
 ])
 def test_bad_start_up_parameters_end_in_one_line(node, args, culprit, domain_id):
     import os
-    r = subprocess.run([sys.executable, "-m", "has_control.cli.main", node, "--ros-args", *args],
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", node, "--ros-args", *args],
                        env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and culprit in r.stderr
@@ -118,7 +118,7 @@ def test_a_signal_during_a_recorded_stack_leaves_a_clean_bag(tmp_path, signame, 
     import signal
     from has_control.bag import read_bag
     bag = tmp_path / "run"
-    p = subprocess.Popen([sys.executable, "-m", "has_control.cli.main", "stack", "--duration", "600", "--record", bag],
+    p = subprocess.Popen([sys.executable, "-m", "has_control.cli", "stack", "--duration", "600", "--record", bag],
                          env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     end = time.monotonic() + 120

@@ -7,7 +7,7 @@ import re
 import pytest
 from rclpy.parameter import Parameter
 
-from has_control.cli.main import main
+from has_control.cli import main
 from has_control.config import load_config
 from has_control.common.errors import ConfigError
 from has_control.core.scenarios import Aggregate, parse_aggregate

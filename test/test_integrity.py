@@ -12,7 +12,7 @@ import pytest
 
 from has_control.bag import PARAMETERS_KEY, BagError, BagWriter, describe, parameters_json, read_bag, \
     score_bag, write_trace
-from has_control.cli.main import main
+from has_control.cli import main
 from has_control.core.episode import simulate
 from has_control.config import with_horizon
 from has_control.common.errors import HasControlError

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from has_control.cli.main import main
+from has_control.cli import main
 
 HEAD = "/**:\n  ros__parameters:\n"
 
@@ -61,7 +61,7 @@ def test_bad_arguments_are_one_argparse_line(capsys, argv, culprits):
 
 
 def test_good_namespaces_pass():
-    from has_control.cli.main import _namespace
+    from has_control.cli.args import namespace as _namespace
     for ns in ("", "/", "/sim0", "sim0", "/a/b_2", "_x"):
         assert _namespace(ns) == ns
 
@@ -120,7 +120,7 @@ def test_fifo_device_directory_and_oversize_file_are_refused_without_reading(cap
 
 def test_ctrl_c_in_the_first_second_is_one_line_and_130():
     for args in (["tune", "--iterations", "1", "--particles", "2"], ["stack", "--duration", "2"]):
-        p = subprocess.Popen([sys.executable, "-m", "has_control.cli.main", *args],
+        p = subprocess.Popen([sys.executable, "-m", "has_control.cli", *args],
                              stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
         time.sleep(0.4)
         p.send_signal(signal.SIGINT)

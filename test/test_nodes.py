@@ -125,7 +125,7 @@ def test_killing_the_controller_mid_run_trips_the_fail_safe_and_a_restart_resume
     import subprocess
     import sys
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    cmd = [sys.executable, "-m", "has_control.cli.main", "controller", "--ros-args", "-p", "publish_internals:=false"]
+    cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false"]
     ex = EventsExecutor(context=context)
     plant = PlantNode(context=context, parameter_overrides=[Parameter("command_timeout", value=0.05)])
     plant.log = []
@@ -254,7 +254,7 @@ def test_killing_the_controller_mid_run_in_realtime_mode(context, domain_id):
     import sys
     import threading
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    cmd = [sys.executable, "-m", "has_control.cli.main", "controller", "--ros-args", "-p", "publish_internals:=false"]
+    cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false"]
     ex = EventsExecutor(context=context)
     samples = int(8.0 / 0.0003)
     plant = PlantNode(context=context, parameter_overrides=[

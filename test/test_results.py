@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from has_control.cli.main import main
+from has_control.cli import main
 from has_control.common.errors import HasControlError
 from has_control.common.files import DirectoryLock, write_atomic
 
@@ -122,7 +122,7 @@ def test_write_atomic_keeps_the_old_file_and_names_the_path(tmp_path):
 
 
 def test_a_full_disk_under_the_bag_writer_names_the_bag(tmp_path, capsys, monkeypatch):
-    import has_control.cli.main as cli
+    import has_control.cli.bag_info as bag_info
     from has_control.bag import BagWriter, STRING
 
     def record_to_a_full_disk(args):
@@ -132,6 +132,6 @@ def test_a_full_disk_under_the_bag_writer_names_the_bag(tmp_path, capsys, monkey
         w.add_topic("/x", STRING)
         w.write("/x", 1, b"\0" * 64)
         w.sync()
-    monkeypatch.setattr(cli, "cmd_bag_info", record_to_a_full_disk)
+    monkeypatch.setattr(bag_info, "run", record_to_a_full_disk)
     rc, _, err = run(capsys, "bag-info", "x")
     one_line(rc, err, str(tmp_path / "bag" / "bag.mcap"), "No space left on device")

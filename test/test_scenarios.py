@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from has_control.cli.main import main
+from has_control.cli import main
 from has_control.config import CONFIG_DIR, load_config
 from has_control.core.episode import evaluate, evaluate_configs
 from has_control.config import with_horizon

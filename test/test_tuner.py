@@ -20,7 +20,7 @@ def cli(*args, domain=None, **kw):
     env = dict(os.environ)
     if domain is not None:
         env["ROS_DOMAIN_ID"] = str(domain)
-    return subprocess.run([sys.executable, "-m", "has_control.cli.main", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
                           capture_output=True, text=True, timeout=900, env=env, **kw)
 
 
@@ -68,7 +68,7 @@ def test_a_session_killed_mid_way_resumes_to_the_same_result(tmp_path, iteration
     assert full.returncode == 0, full.stderr
     d = tmp_path / "session"
     env = dict(os.environ)
-    p = subprocess.Popen([sys.executable, "-m", "has_control.cli.main", *map(str, args), "--out", d],
+    p = subprocess.Popen([sys.executable, "-m", "has_control.cli", *map(str, args), "--out", d],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     done = 0
     deadline = time.monotonic() + 300
@@ -103,7 +103,7 @@ def test_resume_without_a_session_is_one_line(tmp_path):
 
 
 def test_bad_tuner_parameter_is_rejected_with_one_line(domain_id):
-    r = subprocess.run([sys.executable, "-m", "has_control.cli.main", "tuner", "--ros-args", "-p", "evaluator:=fast"],
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tuner", "--ros-args", "-p", "evaluator:=fast"],
                        capture_output=True, text=True, timeout=120,
                        env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
     assert r.returncode == 2 and "evaluator = 'fast'" in r.stderr and "Traceback" not in r.stderr
@@ -114,7 +114,7 @@ def test_graph_lanes_in_separate_processes_equal_the_batch_evaluator(domain_id, 
     them), the tuner a process of its own: the session gives the batch result."""
     import json
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
-    cli_ = [sys.executable, "-m", "has_control.cli.main"]
+    cli_ = [sys.executable, "-m", "has_control.cli"]
     procs = []
     try:
         for ns in ("/sim0", "/sim1"):
@@ -160,7 +160,7 @@ def test_the_tuner_node_tunes_on_scenarios_as_the_library_does(domain_id, tmp_pa
     (["-p", "scenarios:=config/scenarios.yaml", "-p", "evaluator:=graph"], "needs evaluator batch"),
 ])
 def test_bad_tuner_scenarios_are_one_line(domain_id, params, culprit):
-    r = subprocess.run([sys.executable, "-m", "has_control.cli.main", "tuner", "--ros-args", *params],
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tuner", "--ros-args", *params],
                        capture_output=True, text=True, timeout=120,
                        env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
     assert r.returncode == 2 and culprit in r.stderr and "Traceback" not in r.stderr, r.stderr

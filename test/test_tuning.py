@@ -52,7 +52,7 @@ def test_short_tuning_improves_on_its_first_iteration_and_beats_manual_gains():
 
 
 def test_tune_cli_json_is_reproducible_and_has_the_documented_keys():
-    args = [sys.executable, "-m", "has_control.cli.main", "tune", "--variant", "pso-cp-tvac",
+    args = [sys.executable, "-m", "has_control.cli", "tune", "--variant", "pso-cp-tvac",
             "--seed", "1", "--particles", "8", "--iterations", "4", "--json"]
     outs = [json.loads(subprocess.run(args, capture_output=True, text=True, check=True).stdout)
             for _ in range(2)]
@@ -65,14 +65,14 @@ def test_tune_cli_json_is_reproducible_and_has_the_documented_keys():
 
 
 def test_tune_cli_rejects_bad_numbers_in_one_line():
-    r = subprocess.run([sys.executable, "-m", "has_control.cli.main", "tune", "--particles", "0"],
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tune", "--particles", "0"],
                        capture_output=True, text=True)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert "--particles" in r.stderr
 
 
 def test_reproduce_writes_every_table_and_figure(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "has_control.cli.main", "reproduce", "--seeds", "2",
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "reproduce", "--seeds", "2",
                         "--particles", "6", "--iterations", "3", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr

@@ -1,0 +1,122 @@
+"""What several subcommands take: argument types checked by argparse, the
+shared options, and loading the configuration they name."""
+from __future__ import annotations
+
+import argparse
+import math
+import re
+from contextlib import nullcontext
+
+from has_control.common.errors import HasControlError
+from has_control.config import check_gain, finite_number, load_config, with_horizon
+from has_control.core.params import Config
+
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block) and exit status 2."""
+
+    def error(self, message):
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
+
+
+def gains_arg(values) -> tuple[float, float, float]:
+    """--gains K1 K2 K3 [1/s], checked as the config checks gains.k1..k3."""
+    out = []
+    for name, v in zip(("K1", "K2", "K3"), values):
+        try:
+            x = finite_number(float(v))
+        except ValueError:
+            x = "expected a number"
+        why = x if isinstance(x, str) else check_gain(x)
+        if why:
+            raise HasControlError(f"--gains: {name} = {v!r}: {why}")
+        out.append(x)
+    return tuple(out)
+
+
+def load(args) -> Config:
+    """The configuration of ``--config FILE ...`` with ``--duration`` applied."""
+    return with_horizon(load_config(args.config or []), args.duration)
+
+
+def at_least(low: float, kind: type = float):
+    """An argparse type: a finite number (``kind`` int: a whole number) >= ``low``."""
+    expected = "a whole number" if kind is int else "a number"
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}") from None
+        if not ((kind is int or math.isfinite(v)) and v >= low):
+            raise argparse.ArgumentTypeError(f"{text!r}: must be {expected} >= {low:g}")
+        return v
+    return parse
+
+
+positive_int = at_least(1, int)
+
+_NAME = r"[A-Za-z_][A-Za-z0-9_]*"
+_NAMESPACE = re.compile(rf"/?(?:{_NAME}(?:/{_NAME})*)?")
+
+
+def namespace(text: str) -> str:
+    """An argparse type: a ROS namespace (``/sim0``, ``sim0/a``; tokens of
+    letters, digits and underscores, not starting with a digit)."""
+    if not _NAMESPACE.fullmatch(text):
+        raise argparse.ArgumentTypeError(f"{text!r}: not a ROS namespace (tokens of letters, digits and _, "
+                                         "not starting with a digit, separated by /)")
+    return text
+
+
+def port(text: str) -> int:
+    """An argparse type: a TCP port."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a port 1..65535") from None
+    if not 1 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a port 1..65535")
+    return v
+
+
+def figure_path(text: str) -> str:
+    """An argparse type: a figure file whose format matplotlib writes (checked before the run)."""
+    # lazy: matplotlib takes about 1 s to load; only commands given a figure need it
+    from has_control.plots.figures import figure_format
+    try:
+        figure_format(text)
+    except HasControlError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def dask_spec(text: str) -> str:
+    """An argparse type: ``local:N`` or ``tcp://HOST:PORT`` (checked by :mod:`has_control.tuning.dask_evaluator`)."""
+    # lazy: distributed takes about 1 s to load; only --dask needs it
+    from has_control.tuning.dask_evaluator import parse_spec
+    return parse_spec(text)
+
+
+def batch(args):
+    """The batch evaluator of ``--dask SPEC`` (a context manager), else the local one (None)."""
+    if not getattr(args, "dask", None):
+        return nullcontext(None)
+    # lazy: distributed takes about 1 s to load; only --dask needs it
+    from has_control.tuning.dask_evaluator import dask_batch
+    return dask_batch(args.dask)
+
+
+def add_config(p, what: str = "ros__parameters YAML overriding the shipped config (repeatable)") -> None:
+    p.add_argument("--config", action="append", metavar="FILE", help=what)
+
+
+def add_duration(p) -> None:
+    p.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default: config, 10 s)")
+
+
+def add_json(p, what: str = "print one JSON object") -> None:
+    p.add_argument("--json", action="store_true", help=what)

@@ -1,0 +1,48 @@
+"""``has-control robustness``: gain sets on every scenario of a set, and their aggregates."""
+from __future__ import annotations
+
+import json
+
+from has_control.cli.args import add_config, add_duration, add_json, batch, dask_spec, figure_path, gains_arg, load
+from has_control.common.errors import HasControlError
+from has_control.common.files import write_atomic
+from has_control.config import load_scenarios
+from has_control.core.scenarios import parse_aggregate
+from has_control.tuning.robustness import robustness_table
+
+HELP = "J and e_max of gain sets on every scenario of a set, and their aggregates"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--gains", nargs=3, action="append", required=True, metavar=("K1", "K2", "K3"),
+                   help="a gain set [1/s] (repeatable)")
+    p.add_argument("--label", action="append", metavar="NAME", help="a name for each --gains, in order")
+    p.add_argument("--scenarios", required=True, metavar="FILE", help="scenario YAML file")
+    p.add_argument("--aggregate", default="cvar:0.2", metavar="HOW",
+                   help="the tail shown beside mean and max: cvar:ALPHA (default cvar:0.2), mean or max")
+    add_config(p, "ros__parameters YAML (repeatable)")
+    add_duration(p)
+    p.add_argument("--dask", type=dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
+    p.add_argument("--plot", type=figure_path, metavar="FILE.png", help="write J and e_max per scenario as a figure")
+    p.add_argument("--markdown", metavar="FILE.md", help="write the table as Markdown")
+    add_json(p)
+
+
+def run(args) -> int:
+    cfg = load(args)
+    gains = [gains_arg(g) for g in args.gains]
+    labels = list(args.label or [])
+    if len(labels) > len(gains):
+        raise HasControlError(f"--label {labels[len(gains)]}: more labels than --gains")
+    labels += [f"k = ({g[0]:g}, {g[1]:g}, {g[2]:g})" for g in gains[len(labels):]]
+    scenarios = load_scenarios(args.scenarios, cfg)
+    with batch(args) as evaluator:
+        table = robustness_table(gains, labels, cfg, scenarios, parse_aggregate(args.aggregate), evaluator)
+    if args.plot:
+        # lazy: matplotlib takes about 1 s to load; only --plot needs it
+        from has_control.plots.figures import plot_robustness
+        plot_robustness(table, args.plot)
+    if args.markdown:
+        write_atomic(args.markdown, table.markdown())
+    print(json.dumps(table.as_json()) if args.json else table.text())
+    return 0

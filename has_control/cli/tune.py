@@ -1,0 +1,101 @@
+"""``has-control tune``: tune k1, k2, k3, in a resumable session."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from has_control.cli.args import (add_config, add_duration, add_json, batch, dask_spec, load, positive_int)
+from has_control.cli.status import Progress
+from has_control.common.errors import HasControlError
+from has_control.config import load_scenarios
+from has_control.core.scenarios import parse_aggregate
+from has_control.tuning.session import run_session
+from has_control.tuning.swarm import VARIANTS
+from has_control.tuning.tuner import load_tuning
+
+HELP = "tune k1, k2, k3 with a particle swarm"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--variant", choices=tuple(VARIANTS), help="optimiser (default: config/tuner.yaml, pso-cp-tvac)")
+    p.add_argument("--seed", type=int, help="random seed (default 1)")
+    p.add_argument("--particles", type=positive_int, metavar="N", help="swarm size (default 80)")
+    p.add_argument("--iterations", type=positive_int, metavar="N", help="iterations (default 100)")
+    add_config(p, "ros__parameters YAML (episode and swarm.* keys; repeatable)")
+    add_duration(p)
+    p.add_argument("--out", metavar="DIR",
+                   help="write the session bag DIR/session (resumable), tune.json, gains.yaml (--params-file), "
+                        "convergence.png, gains.png")
+    p.add_argument("--resume", metavar="DIR",
+                   help="continue the session in DIR from its last complete iteration (its settings apply)")
+    p.add_argument("--scenarios", metavar="FILE",
+                   help="robust tuning: score each candidate on every scenario of this YAML file")
+    p.add_argument("--aggregate", metavar="HOW", help="with --scenarios: mean (default), max or cvar:ALPHA")
+    p.add_argument("--dask", type=dask_spec, metavar="SPEC",
+                   help="evaluate on a Dask cluster: local:N (N local workers) or tcp://HOST:PORT (a scheduler)")
+    p.add_argument("--force", action="store_true", help="with --out: replace the session and tune.json already in DIR")
+    add_json(p)
+
+
+def tuning_args(args):
+    """The tuning settings of ``--config`` with the command line's changes."""
+    t = load_tuning(args.config or [])
+    changes = {k: v for k, v in (("variant", args.variant), ("seed", args.seed),
+                                 ("particles", args.particles), ("iterations", args.iterations))
+               if v is not None}
+    try:
+        return t.replace(**changes)
+    except HasControlError as exc:
+        raise HasControlError(f"command line: {exc}") from None
+
+
+def robust(args, cfg, tuning):
+    """``tuning`` with the scenarios of ``--scenarios`` and ``--aggregate``."""
+    if args.aggregate and not args.scenarios:
+        raise HasControlError(f"--aggregate {args.aggregate}: needs --scenarios FILE")
+    if not args.scenarios:
+        return tuning
+    return tuning.replace(scenarios=load_scenarios(args.scenarios, cfg),
+                          aggregate=parse_aggregate(args.aggregate or "mean"))
+
+
+def _figures(res, directory: Path) -> None:
+    # lazy: matplotlib takes about 1 s to load; only a session with --out draws
+    from has_control.plots.figures import plot_convergence, plot_gains
+    plot_convergence([(res.variant, res.result)], directory / "convergence.png")
+    plot_gains(res.result, directory / "gains.png", f"{res.variant}, seed {res.seed}")
+
+
+def run(args) -> int:
+    if args.resume:
+        if args.out and Path(args.out) != Path(args.resume):
+            raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")
+        if args.scenarios or args.aggregate:
+            raise HasControlError("--scenarios/--aggregate: a resumed session scores on its own scenarios")
+        cfg = tuning = None
+    else:
+        cfg = load(args)
+        tuning = robust(args, cfg, tuning_args(args))
+    progress = Progress()
+    try:
+        with batch(args) as evaluator:
+            session = run_session(cfg, tuning, args.out, resume_dir=args.resume, replace=args.force,
+                                  on_iteration=progress, artefacts=_figures, batch=evaluator,
+                                  evaluator="dask" if args.dask else "batch",
+                                  announce=lambda m: print(m, file=sys.stderr))
+    finally:
+        progress.close()
+    res, out = session.result, session.out
+    if args.json:
+        print(json.dumps(out))
+    else:
+        k = res.gains
+        over = f" ({res.aggregate} over {res.scenarios} scenarios)" if res.scenarios else ""
+        print(f"{res.variant}, seed {res.seed}: k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), "
+              f"J = {res.result.fun:.6e}{over} after {res.result.nit} iterations, "
+              f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
+        if session.directory:
+            print(f"wrote {session.directory / 'tune.json'}, gains.yaml (a --params-file for the controller), "
+                  f"convergence.png, gains.png and the session bag {session.bag}")
+    return 0
