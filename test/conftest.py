@@ -28,3 +28,14 @@ def context(domain_id):
     rclpy.init(context=ctx, domain_id=domain_id)
     yield ctx
     rclpy.try_shutdown(context=ctx)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The long runs (marker ``slow``) only when ``-m`` names them: any other
+    ``-m`` expression (e.g. ``-m "not ros"``) still leaves them out."""
+    if "slow" in (config.option.markexpr or ""):
+        return
+    slow = [i for i in items if i.get_closest_marker("slow")]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [i for i in items if not i.get_closest_marker("slow")]

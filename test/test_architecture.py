@@ -10,6 +10,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 import has_control
 
 PACKAGE = Path(has_control.__file__).resolve().parent
@@ -127,6 +129,7 @@ def test_inner_wings_load_no_ros_and_no_bags():
         assert _loaded_by(modules, banned) == "", wing
 
 
+@pytest.mark.compile
 def test_editing_a_callee_module_recompiles_the_kernels(tmp_path):
     """numba alone would keep episode's cached kernel after actuator.py changes."""
     import shutil

@@ -196,6 +196,7 @@ def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case):
     assert "Traceback" not in r.stderr
 
 
+@pytest.mark.ros
 def test_the_recorder_never_overwrites(recorded):
     d, _, _ = recorded
     r = cli("stack", "--duration", HORIZON, "--record", d)
@@ -204,6 +205,7 @@ def test_the_recorder_never_overwrites(recorded):
 
 # --- replay ----------------------------------------------------------------------
 
+@pytest.mark.ros
 def test_replay_to_a_live_controller_matches_bit_for_bit(recorded, domain_id):
     d, _, _ = recorded
     r = cli("replay", d, "--controller", domain=domain_id)
@@ -224,6 +226,7 @@ def _with_parameters(src, dst, **changes):
     return dst
 
 
+@pytest.mark.ros
 def test_replay_with_a_changed_controller_reports_mismatches(recorded, tmp_path, domain_id):
     from has_control.nodes.replay import replay_controller
     d, _, _ = recorded
@@ -241,6 +244,7 @@ def test_replay_with_a_changed_controller_reports_mismatches(recorded, tmp_path,
     assert check.mismatches > 0 and check.max_abs_diff > 0
 
 
+@pytest.mark.ros
 def test_replay_publishes_clock_that_use_sim_time_nodes_follow(recorded, domain_id):
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter

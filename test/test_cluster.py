@@ -81,6 +81,7 @@ def test_dask_batch_refuses_a_bad_spec_before_starting_anything():
             dask_batch(text)
 
 
+@pytest.mark.cluster
 def test_unreachable_scheduler_is_one_line_naming_the_address():
     with socket.socket() as s:                                    # a port nobody listens on
         s.bind(("127.0.0.1", 0))
@@ -133,6 +134,7 @@ def test_plan_follows_the_model():
 
 # --- on a cluster ---------------------------------------------------------------------------------
 
+@pytest.mark.cluster
 def test_local_cluster_gives_the_bits_of_evaluate_configs():
     cfgs = short_configs()
     gains = random_gains(20)
@@ -152,6 +154,7 @@ def test_local_cluster_gives_the_bits_of_evaluate_configs():
         batch(gains, cfgs)
 
 
+@pytest.mark.cluster
 def test_a_worker_with_other_bits_is_refused(monkeypatch):
     """The warm-up compares every worker's probe with this process's: here
     this process pretends to compute other bits (a different kernel or libm)."""
@@ -185,6 +188,7 @@ class KillOnceArmed(WorkerPlugin):
         os.kill(os.getpid(), signal.SIGKILL)
 
 
+@pytest.mark.cluster
 def test_a_lost_scheduler_is_one_line(dask_processes):
     """The scheduler dies between calls: the client tries to reconnect for
     connect_timeout, then the call fails with one line naming the address."""
@@ -202,6 +206,7 @@ def test_a_lost_scheduler_is_one_line(dask_processes):
         assert "\n" not in message and address in message and "lost the cluster" in message
 
 
+@pytest.mark.cluster
 def test_a_restarted_local_worker_gets_the_configs_and_reruns_the_task(tmp_path):
     """local:1: the only worker dies mid-task; its nanny restarts it, the
     Config store reaches it as it registers, the task runs again."""
@@ -285,6 +290,7 @@ def dask_processes(tmp_path, request):
     yield address, scheduler, {w.pid: w for w in workers}
 
 
+@pytest.mark.cluster
 def test_tune_through_dask_survives_a_worker_killed_mid_task(dask_processes, tmp_path):
     """A worker SIGKILLed while it runs a task of the second iteration costs
     time, not results: the scheduler reruns the task on the other worker and
@@ -333,6 +339,7 @@ def test_scaling_model_of_the_bench():
     assert all(0 < r["efficiency"] <= 1 for r in rows)
 
 
+@pytest.mark.cluster
 def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
     """Issue #14's "done when": ``tune --scenarios config/scenarios.yaml --aggregate cvar:0.2
     --dask local:2 --json`` gives the result it gives without --dask (a short run of it)."""
@@ -350,6 +357,7 @@ def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
     assert outs[0] == outs[1] and outs[0]["scenarios"] == 20 and outs[0]["aggregate"] == "cvar:0.2"
 
 
+@pytest.mark.cluster
 def test_a_session_started_on_dask_resumes_locally_to_the_same_result(tmp_path):
     """Sessions stay resumable: the evaluator is not part of the result, so a
     session interrupted on a cluster finishes in-process with the same bits."""

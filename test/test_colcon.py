@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = [pytest.mark.ros, pytest.mark.install]
+
 ROOT = Path(__file__).resolve().parent.parent
 COLCON = Path(sys.executable).parent / "colcon"
 

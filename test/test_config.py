@@ -63,6 +63,7 @@ def test_later_files_override_earlier_ones_and_yaml_floats_read_like_ros(tmp_pat
     assert cfg.actuator.mass == 1200.0 and cfg.gains.k1 == 200.0
 
 
+@pytest.mark.ros
 def test_sections_apply_to_the_nodes_they_name_as_rcl_decides(tmp_path):
     from has_control.config import load_config, node_matches, read_parameter_file
     assert node_matches("/**", "/sim0/plant") and node_matches("controller", "/controller")

@@ -23,6 +23,8 @@ from has_control.nodes.runtime import tee
 from has_control.nodes.plant_node import PlantNode
 from has_control.wire.topics import CLOCK_LAYOUT, GAINS_LAYOUT, STATE_LAYOUT, STATE_NAMES
 
+pytestmark = [pytest.mark.ros]
+
 SUBPROTOCOL = "foxglove.sdk.v1"        # foxglove-sdk's name for foxglove.websocket.v1 (which it refuses)
 RUN = {"/state", "/command", "/clock", "/controller/controller_state", "/controller/reference",
        "/controller/gains"}

@@ -23,6 +23,8 @@ from has_control.core.params import Config
 
 from test_nodes import _spin_until as _spin
 
+pytestmark = [pytest.mark.ros]
+
 
 def test_malformed_and_non_finite_messages_are_counted_and_ignored(context):
     """Empty JointStates, NaN values and strangers' layouts reach neither the

@@ -30,6 +30,7 @@ def test_road_parameters_far_out_of_range_are_one_line(tmp_path, capsys, road, c
     assert len(err.splitlines()) == 1 and culprit in err, err
 
 
+@pytest.mark.ros
 def test_controller_rejects_a_road_it_cannot_build_and_keeps_the_old_reference(context):
     from has_control.nodes.controller_node import ControllerNode
     node = ControllerNode(context=context)
@@ -73,6 +74,7 @@ def test_a_session_with_damaged_scenarios_is_one_line(tmp_path, monkeypatch):
         session.resume(tmp_path / "s")
 
 
+@pytest.mark.ros
 def test_the_tuner_node_takes_the_plant_options_and_the_noise(context):
     from has_control.config import build_config
     from has_control.nodes.stack import _overrides
@@ -88,6 +90,7 @@ def test_the_tuner_node_takes_the_plant_options_and_the_noise(context):
         node.destroy_node()
 
 
+@pytest.mark.ros
 def test_stack_tuning_with_plant_options_scores_what_the_graph_runs(domain_id):
     from has_control.config import build_config
     from has_control.config import with_horizon

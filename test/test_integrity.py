@@ -80,6 +80,7 @@ def test_chunks_and_data_section_carry_crcs_that_the_reader_checks(run_bag, tmp_
         score_bag(copy)
 
 
+@pytest.mark.system
 def test_bit_flips_over_a_recorded_run_never_change_j(run_bag, tmp_path, capsys):
     d, score = run_bag
     src = (d / "run.mcap").read_bytes()
@@ -173,6 +174,7 @@ def _resume(d, capsys):
     return rc, cap.out, cap.err
 
 
+@pytest.mark.system
 def test_bit_flips_over_a_session_bag_resume_to_the_same_gains_or_stop_in_one_line(session_dir, tmp_path, capsys):
     d, full = session_dir
     src = (d / "session" / "session.mcap").read_bytes()

@@ -118,6 +118,7 @@ def test_fifo_device_directory_and_oversize_file_are_refused_without_reading(cap
                        "not a regular file" if path != big else "MCAP")
 
 
+@pytest.mark.ros
 def test_ctrl_c_in_the_first_second_is_one_line_and_130():
     for args in (["tune", "--iterations", "1", "--particles", "2"], ["stack", "--duration", "2"]):
         p = subprocess.Popen([sys.executable, "-m", "has_control.cli", *args],

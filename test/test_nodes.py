@@ -16,6 +16,8 @@ from has_control.nodes.plant_node import PlantNode
 from has_control.nodes.stack import run_stack
 from has_control.core.params import Config
 
+pytestmark = [pytest.mark.ros]
+
 
 def test_graph_run_equals_the_in_process_trace(context):
     cfg = with_horizon(Config(), 1.5)

@@ -3,11 +3,13 @@ import json
 import subprocess
 import sys
 
+import pytest
 import rclpy
 
 from has_control.nodes.controller_node import ControllerNode
 
 
+@pytest.mark.ros
 def test_tune_out_writes_a_params_file_the_controller_starts_with(tmp_path, domain_id):
     out = tmp_path / "session"
     r = subprocess.run([sys.executable, "-m", "has_control.cli", "tune", "--particles", "4", "--iterations", "2",
@@ -26,6 +28,7 @@ def test_tune_out_writes_a_params_file_the_controller_starts_with(tmp_path, doma
             rclpy.try_shutdown(context=ctx)
 
 
+@pytest.mark.ros
 def test_the_tuner_node_writes_the_params_file_too(tmp_path, domain_id):
     import os
     import yaml
@@ -39,6 +42,7 @@ def test_the_tuner_node_writes_the_params_file_too(tmp_path, domain_id):
     assert [params["k1"], params["k2"], params["k3"]] == out["gains"] and out["gains_file"] == str(rec / "gains.yaml")
 
 
+@pytest.mark.ros
 def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
     from has_control.nodes.plant_node import PlantNode
     controller, plant = ControllerNode(context=context), PlantNode(context=context)

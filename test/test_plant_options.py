@@ -192,6 +192,7 @@ def test_bad_plant_options_are_one_line_naming_the_key(flat, culprit):
 
 # --- graph = library ------------------------------------------------------------------------------
 
+@pytest.mark.ros
 def test_graph_equals_the_library_with_mismatch_limit_lag_and_noise(context, tmp_path):
     from has_control.bag import score_bag
     from has_control.nodes.stack import run_stack

@@ -111,6 +111,7 @@ def test_invalid_settings_are_rejected_in_one_line(kwargs, culprit):
     assert culprit in str(info.value) and "\n" not in str(info.value)
 
 
+@pytest.mark.system
 def test_bench_swarm_protocol_runs_resumes_and_reports(tmp_path):
     """scripts/bench_swarm.py in small: a run appends JSON lines, a second run
     with the same settings adds nothing, and the report has the table."""

@@ -24,6 +24,7 @@ def cli(*args, domain=None, **kw):
                           capture_output=True, text=True, timeout=900, env=env, **kw)
 
 
+@pytest.mark.ros
 def test_stack_tune_sets_the_best_gains_through_parameters(domain_id):
     r = cli("stack", "--tune", "--iterations", 3, "--particles", 4, "--duration", 1.5, domain=domain_id)
     assert r.returncode == 0, r.stderr
@@ -35,6 +36,7 @@ def test_stack_tune_sets_the_best_gains_through_parameters(domain_id):
     assert f"validated through the graph: J = {ref.result.fun:.6e}" in r.stdout
 
 
+@pytest.mark.ros
 def test_graph_evaluation_over_two_lanes_equals_the_batch_evaluator(domain_id, tmp_path):
     cfg = with_horizon(Config(), 1.5)
     out = run_tuning_stack(cfg, {"iterations": 2, "particles": 3}, evaluator="graph",
@@ -51,6 +53,7 @@ def test_graph_evaluation_over_two_lanes_equals_the_batch_evaluator(domain_id, t
     assert session.count(ITERATION) == 2 and session.count("/validation/sim0/state") == 5000
 
 
+@pytest.mark.ros
 def test_diverging_candidates_score_inf_and_the_tuner_carries_on(domain_id, tmp_path):
     cfg = with_horizon(Config(), 1.5)
     bounds = tmp_path / "wild.yaml"
@@ -61,6 +64,7 @@ def test_diverging_candidates_score_inf_and_the_tuner_carries_on(domain_id, tmp_
     assert out["J"] == "inf" and out["evaluations"] == 4 and out["iterations"] == 2
 
 
+@pytest.mark.system
 @pytest.mark.parametrize("iterations", [40])
 def test_a_session_killed_mid_way_resumes_to_the_same_result(tmp_path, iterations):
     args = ["tune", "--particles", 40, "--iterations", iterations, "--json"]
@@ -102,6 +106,7 @@ def test_resume_without_a_session_is_one_line(tmp_path):
     assert r.returncode == 2 and "no session bag to resume" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.ros
 def test_bad_tuner_parameter_is_rejected_with_one_line(domain_id):
     r = subprocess.run([sys.executable, "-m", "has_control.cli", "tuner", "--ros-args", "-p", "evaluator:=fast"],
                        capture_output=True, text=True, timeout=120,
@@ -109,6 +114,7 @@ def test_bad_tuner_parameter_is_rejected_with_one_line(domain_id):
     assert r.returncode == 2 and "evaluator = 'fast'" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.ros
 def test_graph_lanes_in_separate_processes_equal_the_batch_evaluator(domain_id, tmp_path):
     """Two plant and two controller processes in /sim0 and /sim1 (as ros2 run starts
     them), the tuner a process of its own: the session gives the batch result."""
@@ -141,6 +147,7 @@ def test_graph_lanes_in_separate_processes_equal_the_batch_evaluator(domain_id, 
     assert len(list((rec / "episodes").iterdir())) == 6                 # every candidate ran through a lane
 
 
+@pytest.mark.ros
 def test_the_tuner_node_tunes_on_scenarios_as_the_library_does(domain_id, tmp_path):
     from has_control.config import CONFIG_DIR
     from has_control.core.scenarios import parse_aggregate
@@ -159,6 +166,7 @@ def test_the_tuner_node_tunes_on_scenarios_as_the_library_does(domain_id, tmp_pa
     (["-p", "scenarios:=" + "config/scenarios.yaml", "-p", "aggregate:=cvar:2"], "cvar:2"),
     (["-p", "scenarios:=config/scenarios.yaml", "-p", "evaluator:=graph"], "needs evaluator batch"),
 ])
+@pytest.mark.ros
 def test_bad_tuner_scenarios_are_one_line(domain_id, params, culprit):
     r = subprocess.run([sys.executable, "-m", "has_control.cli", "tuner", "--ros-args", *params],
                        capture_output=True, text=True, timeout=120,

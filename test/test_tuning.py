@@ -71,6 +71,7 @@ def test_tune_cli_rejects_bad_numbers_in_one_line():
     assert "--particles" in r.stderr
 
 
+@pytest.mark.system
 def test_reproduce_writes_every_table_and_figure(tmp_path):
     r = subprocess.run([sys.executable, "-m", "has_control.cli", "reproduce", "--seeds", "2",
                         "--particles", "6", "--iterations", "3", "--out", str(tmp_path)],

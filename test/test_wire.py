@@ -48,6 +48,7 @@ def _equal_but_padding(ours: bytes, theirs: bytes, layout) -> None:
     assert not a[layout.padding].any()                # ours are zero, as rosbags writes them
 
 
+@pytest.mark.ros
 def test_state_bytes_are_what_rclpy_and_rosbags_serialize():
     cfg = Config()
     x = cfg.actuator.initial_state() + np.array([0.0123, -0.045, 1e5, -2e5])
@@ -72,6 +73,7 @@ def test_state_bytes_are_what_rclpy_and_rosbags_serialize():
         _equal_but_padding(data, serialize_message(labelled), layout)
 
 
+@pytest.mark.ros
 def test_rclpy_and_rosbags_decode_the_same_messages():
     cfg = Config()
     x = cfg.actuator.initial_state() + np.array([0.0123, -0.045, 1e5, -2e5])
@@ -100,6 +102,7 @@ def test_rclpy_and_rosbags_decode_the_same_messages():
     assert steps.command_of(command, STEP_NS, steps.scratch()) == (SAMPLE, cmd.position[0])
 
 
+@pytest.mark.ros
 def test_messages_of_another_layout_or_value_are_refused():
     scr = steps.scratch()
     good = JointState(name=["valve"], position=[1e-4])
