@@ -118,7 +118,7 @@ def test_bench_swarm_protocol_runs_resumes_and_reports(tmp_path):
     import subprocess
     import sys
     from pathlib import Path
-    script = Path(__file__).resolve().parents[1] / "scripts" / "bench_swarm.py"
+    script = Path(__file__).resolve().parents[1] / "has_control" / "bench" / "swarm_peers.py"
     out = tmp_path / "ours.jsonl"
     run = [sys.executable, str(script), "--run", "ours", "--functions", "sphere", "rastrigin",
            "--dims", "2", "--seeds", "2", "--optimisers", "pso", "--out", str(out)]

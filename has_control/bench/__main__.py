@@ -1,5 +1,9 @@
 """``scripts/bench``: every benchmark of the project, one option each.
 
+``scripts/bench --swarm`` (the optimisers against pyswarms, mealpy and SciPy in
+a venv of their own) runs :mod:`has_control.bench.swarm_peers` through
+``scripts/bench_swarm``; every other option runs here.
+
 Prints figures only; never a pass/fail. Each figure is a ratio against a
 baseline run in the same process, best of N (the machine is shared).
 """
@@ -9,6 +13,7 @@ import argparse
 
 from has_control.bench.dask import bench_dask, print_dask
 from has_control.bench.evaluator import bench_evaluator
+from has_control.bench.foxglove import bench_foxglove
 from has_control.bench.graph import bench_graph, print_graph
 from has_control.bench.scoring import bench_scoring
 from has_control.bench.tuning import bench_optimiser, bench_paper, bench_scenarios
@@ -27,7 +32,12 @@ def main(argv=None) -> int:
     ap.add_argument("--dask", action="store_true",
                     help="run only dask_batch('local:2') against the local batch, 80 x 20 episodes of 10 s, "
                          "Dask's per-task costs and the scaling model (about 30 s)")
+    ap.add_argument("--foxglove", action="store_true",
+                    help="run only the live view's cost per message (no client, one client, a list append)")
     args = ap.parse_args(argv)
+    if args.foxglove:
+        bench_foxglove()
+        return 0
     if args.dask:
         print_dask(bench_dask(repeats=args.repeats))
         return 0

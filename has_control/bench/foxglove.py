@@ -3,7 +3,7 @@
 Not a test: prints figures only. Logs N state messages (the loop's bytes)
 through ``LiveView.sink`` with no client, then with one client (a separate
 process) subscribed to the topic, and a list append (the recorder's tap)
-for scale. Run: ``.venv/bin/python scripts/bench_foxglove.py [N]``.
+for scale. Run: ``scripts/bench --foxglove``.
 """
 from __future__ import annotations
 
@@ -45,7 +45,8 @@ def per_message(take, msgs, n: int) -> float:
     return (time.perf_counter() - t0) / n * 1e6
 
 
-def main(n: int) -> None:
+def bench_foxglove(n: int = 300_000) -> None:
+    """Print the microseconds per message of each tap (``n`` messages each)."""
     msgs = [STATE_LAYOUT.encode([0.01 * i] * 9, i * 300_000) for i in range(1000)]
     sink: list[bytes] = []
     print(f"list append (the recorder's tap): {per_message(sink.append, msgs, n):.3f} us per message")
@@ -62,7 +63,3 @@ def main(n: int) -> None:
     received = int(client.communicate(timeout=10)[0])         # the server has stopped: the client ends
     print(f"({n:,} messages of {len(msgs[0])} bytes each; the client received {received:,}: "
           "a slow client loses the oldest)")
-
-
-if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 300_000)

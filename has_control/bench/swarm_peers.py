@@ -15,7 +15,7 @@ Three roles, one file:
   --report DIR (project venv: tables, Wilcoxon rank-sum p)  -> DIR/report.md
 
 ``--out FILE`` appends to FILE and skips the runs already in it, so a long
-protocol can be run in pieces and resumed. ``scripts/bench_swarm`` runs all
+protocol can be run in pieces and resumed. ``scripts/bench --swarm`` runs all
 roles. Peers are installed in their own venv (mealpy pins NumPy 1.x); they are
 never dependencies of has_control.
 """
@@ -102,6 +102,7 @@ class Problem:
 # --- runners ---------------------------------------------------------------------
 
 def run_ours(variant: str, p: Problem, seed: int) -> None:
+    # lazy: this file also runs in the peers' venv (scripts/bench --swarm), which has no has_control
     from has_control.tuning.swarm import minimize
     # 20 % of the range on the test functions; SPEC's v_max on our own problem
     vmax = ABC_VMAX if p.name == "abc" else 0.2 * (p.upper[0] - p.lower[0])
@@ -145,6 +146,7 @@ PEERS = {"pyswarms GlobalBestPSO": run_pyswarms,
 
 def abc_cost_local():
     """J of gain rows (N, 3) with the batch evaluator (project venv)."""
+    # lazy: this file also runs in the peers' venv (scripts/bench --swarm), which has no has_control
     from has_control.core.episode import evaluate
     return evaluate
 
