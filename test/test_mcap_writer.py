@@ -12,7 +12,7 @@ import yaml
 from has_control.wire import cdr
 from has_control.bag import (CLOCK, FLOAT64_ARRAY, JOINT_STATE, BagError, BagWriter, QosSpec, read_bag,
                              typestore)
-from has_control.bag.mcap_writer import MAGIC
+from has_control.bag.mcap_format import MAGIC
 
 N = 4000                                    # samples: ~2.1 MiB of records, three chunks
 STEP = 300_000                              # [ns]

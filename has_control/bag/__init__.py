@@ -21,7 +21,8 @@ from has_control.wire.topics import (  # noqa: F401  (re-exported: the bag code'
     CLOCK, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
     REFERENCE, RUN_TOPICS, STATE, STATE_NAMES, STRING,
 )
-from has_control.bag.base import MAGIC, PARAMETERS_KEY, BagError, warn  # noqa: F401
+from has_control.bag.base import PARAMETERS_KEY, BagError, warn  # noqa: F401
+from has_control.bag.mcap_format import MAGIC  # noqa: F401
 from has_control.bag.read import Bag, describe, read_bag  # noqa: F401
 from has_control.bag.score import RecordedRun, recorded_run, score_bag  # noqa: F401
 from has_control.bag.write import (  # noqa: F401

@@ -1,11 +1,10 @@
-"""What the bag modules share: the error, warnings, the MCAP magic and our custom-data key."""
+"""What the bag modules share: the error, warnings and our custom-data key."""
 from __future__ import annotations
 
 import sys
 
 from has_control.common.errors import HasControlError
 
-MAGIC = b"\x89MCAP0\r\n"
 PARAMETERS_KEY = "has_control/parameters"
 
 

@@ -34,25 +34,12 @@ import numpy as np
 import zstandard
 from numpy.lib.stride_tricks import as_strided
 
-MAGIC = b"\x89MCAP0\r\n"
+from has_control.bag.mcap_format import MAGIC, MESSAGE_HEAD, Op, encode_string, encode_string_map
+
 CHUNK_BYTES = 1 << 20               # a chunk is closed once its records pass this [bytes]
 NO_TIME = 2**63 - 1                 # start time [ns] before any message, as rosbags keeps it
 
-# record opcodes
-HEADER, FOOTER, SCHEMA, CHANNEL, MESSAGE, CHUNK, MESSAGE_INDEX = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07
-CHUNK_INDEX, STATISTICS, METADATA, METADATA_INDEX, SUMMARY_OFFSET, DATA_END = 0x08, 0x0B, 0x0C, 0x0D, 0x0E, 0x0F
-
 COMPRESSIONS = {"zstd": "zstd", "none": ""}     # our option -> MCAP's compression string
-MESSAGE_HEAD = 31                   # opcode, length, channel, sequence, log and publish time [bytes]
-
-
-def _string(value: str | bytes) -> bytes:
-    data = value.encode() if isinstance(value, str) else value
-    return struct.pack("<I", len(data)) + data
-
-
-def _string_map(values: dict[str, str]) -> bytes:
-    return _string(b"".join(_string(k) + _string(v) for k, v in values.items()))
 
 
 def _record(op: int, content: bytes) -> bytes:
@@ -65,7 +52,7 @@ def _message_records(channel: int, log_times: np.ndarray, data: np.ndarray) -> n
     n, size = data.shape
     rec = np.empty(n, np.dtype([("op", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
                                 ("log_time", "<u8"), ("publish_time", "<u8"), ("data", "u1", (size,))]))
-    rec["op"], rec["length"], rec["channel"], rec["sequence"] = MESSAGE, MESSAGE_HEAD - 9 + size, channel, 0
+    rec["op"], rec["length"], rec["channel"], rec["sequence"] = Op.MESSAGE, MESSAGE_HEAD - 9 + size, channel, 0
     rec["log_time"] = rec["publish_time"] = log_times
     rec["data"] = data
     return rec.view(np.uint8).reshape(n, MESSAGE_HEAD + size)
@@ -151,7 +138,7 @@ class McapWriter:
         self.counts: dict[int, int] = {}               # messages per channel id
         self.start_ns, self.end_ns = NO_TIME, 0        # first and last log time [ns]
         self.closed = False
-        self._emit(MAGIC + _record(HEADER, _string(profile) + _string(library)))
+        self._emit(MAGIC + _record(Op.HEADER, encode_string(profile) + encode_string(library)))
 
     def _emit(self, data: bytes) -> None:
         with self._naming_path():
@@ -177,16 +164,16 @@ class McapWriter:
     def add_schema(self, name: str, encoding: str, data: bytes) -> int:
         """Write a Schema record; its id."""
         sid = len(self._schemas) + 1
-        self._schemas.append(_record(SCHEMA, struct.pack("<H", sid) + _string(name) + _string(encoding)
-                                     + _string(data)))
+        self._schemas.append(_record(Op.SCHEMA, struct.pack("<H", sid) + encode_string(name) + encode_string(encoding)
+                                     + encode_string(data)))
         self._emit(self._schemas[-1])
         return sid
 
     def add_channel(self, topic: str, schema_id: int, message_encoding: str, metadata: dict[str, str]) -> int:
         """Write a Channel record; its id."""
         cid = len(self._channels) + 1
-        self._channels.append(_record(CHANNEL, struct.pack("<HH", cid, schema_id) + _string(topic)
-                                      + _string(message_encoding) + _string_map(metadata)))
+        self._channels.append(_record(Op.CHANNEL, struct.pack("<HH", cid, schema_id) + encode_string(topic)
+                                      + encode_string(message_encoding) + encode_string_map(metadata)))
         self._emit(self._channels[-1])
         self.counts[cid] = 0
         return cid
@@ -279,8 +266,8 @@ class McapWriter:
         raw = b"".join(chunk.parts)
         data = self._compressor.compress(raw) if self._compressor else raw
         start = self._pos
-        head = struct.pack("<QQQI", chunk.start, chunk.end, len(raw), zlib.crc32(raw)) + _string(self.compression)
-        self._emit(_record(CHUNK, head + struct.pack("<Q", len(data)) + data))
+        head = struct.pack("<QQQI", chunk.start, chunk.end, len(raw), zlib.crc32(raw)) + encode_string(self.compression)
+        self._emit(_record(Op.CHUNK, head + struct.pack("<Q", len(data)) + data))
         chunk_end = self._pos
         channels, times = np.concatenate(chunk.channels), np.concatenate(chunk.log_times)
         offsets = np.concatenate(chunk.offsets)
@@ -290,11 +277,11 @@ class McapWriter:
             entries = np.empty((int(sel.sum()), 2), "<u8")
             entries[:, 0], entries[:, 1] = times[sel], offsets[sel]
             index_offsets.append(struct.pack("<HQ", c, self._pos))
-            self._emit(_record(MESSAGE_INDEX, struct.pack("<HI", c, entries.nbytes) + entries.tobytes()))
-        self._chunk_indexes.append(_record(CHUNK_INDEX, struct.pack("<QQQQ", chunk.start, chunk.end, start,
-                                                                    chunk_end - start)
-                                           + _string(b"".join(index_offsets))
-                                           + struct.pack("<Q", self._pos - chunk_end) + _string(self.compression)
+            self._emit(_record(Op.MESSAGE_INDEX, struct.pack("<HI", c, entries.nbytes) + entries.tobytes()))
+        self._chunk_indexes.append(_record(Op.CHUNK_INDEX, struct.pack("<QQQQ", chunk.start, chunk.end, start,
+                                                                       chunk_end - start)
+                                           + encode_string(b"".join(index_offsets))
+                                           + struct.pack("<Q", self._pos - chunk_end) + encode_string(self.compression)
                                            + struct.pack("<QQ", len(data), len(raw))))
 
     def sync(self) -> None:
@@ -314,26 +301,27 @@ class McapWriter:
         self._close_chunk()
         metadata_indexes = []
         for name, values in (metadata or {}).items():
-            record = _record(METADATA, _string(name) + _string_map(values))
-            metadata_indexes.append(_record(METADATA_INDEX, struct.pack("<QQ", self._pos, len(record))
-                                            + _string(name)))
+            record = _record(Op.METADATA, encode_string(name) + encode_string_map(values))
+            metadata_indexes.append(_record(Op.METADATA_INDEX, struct.pack("<QQ", self._pos, len(record))
+                                            + encode_string(name)))
             self._emit(record)
-        self._emit(_record(DATA_END, struct.pack("<I", self._crc)))
+        self._emit(_record(Op.DATA_END, struct.pack("<I", self._crc)))
         summary_start = self._pos
         count = sum(self.counts.values())
         per_channel = b"".join(struct.pack("<HQ", c, n) for c, n in sorted(self.counts.items()))
-        statistics = _record(STATISTICS, struct.pack("<QHIIII", count, len(self._schemas), len(self._channels), 0,
-                                                     len(metadata_indexes), len(self._chunk_indexes))
+        statistics = _record(Op.STATISTICS, struct.pack("<QHIIII", count, len(self._schemas), len(self._channels), 0,
+                                                        len(metadata_indexes), len(self._chunk_indexes))
                              + struct.pack("<QQ", self.start_ns if count else 0, self.end_ns)
-                             + _string(per_channel))
+                             + encode_string(per_channel))
         summary, offsets = b"", b""
-        for op, group in ((SCHEMA, self._schemas), (CHANNEL, self._channels), (CHUNK_INDEX, self._chunk_indexes),
-                          (METADATA_INDEX, metadata_indexes), (STATISTICS, [statistics])):
+        for op, group in ((Op.SCHEMA, self._schemas), (Op.CHANNEL, self._channels),
+                          (Op.CHUNK_INDEX, self._chunk_indexes), (Op.METADATA_INDEX, metadata_indexes),
+                          (Op.STATISTICS, [statistics])):
             if group:
                 data = b"".join(group)
-                offsets += _record(SUMMARY_OFFSET, struct.pack("<BQQ", op, summary_start + len(summary), len(data)))
+                offsets += _record(Op.SUMMARY_OFFSET, struct.pack("<BQQ", op, summary_start + len(summary), len(data)))
                 summary += data
-        footer = struct.pack("<BQQQ", FOOTER, 20, summary_start, summary_start + len(summary))
+        footer = struct.pack("<BQQQ", Op.FOOTER, 20, summary_start, summary_start + len(summary))
         summary += offsets
         self._emit(summary + footer + struct.pack("<I", zlib.crc32(footer, zlib.crc32(summary))) + MAGIC)
         with self._naming_path():

@@ -10,7 +10,18 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 from has_control.common.files import MiB, read_bytes, read_text
-from has_control.bag.base import MAGIC, PARAMETERS_KEY, BagError, warn
+from has_control.bag.base import PARAMETERS_KEY, BagError, warn
+from has_control.bag.mcap_format import FOOTER_BYTES, MAGIC, Op, decode_string, decode_string_map
+
+
+@dataclass(frozen=True)
+class Damage:
+    """One reason a bag is incomplete: ``kind`` (chunk, data, record or
+    truncated), the warning said, and its few words for a summary."""
+
+    kind: str
+    text: str
+    short: str
 
 
 @dataclass
@@ -25,7 +36,7 @@ class Bag:
     custom_data: dict[str, str] = field(default_factory=dict)
     encodings: dict[str, str] = field(default_factory=dict)     # topic -> message encoding
     complete: bool = True
-    damage: list[str] = field(default_factory=list)             # why not complete, one item per finding
+    damage: list[Damage] = field(default_factory=list)          # why not complete, one item per finding
     lost_bytes: int = 0
     size: int = 0
     on_warning: Callable[[str], None] = field(default=warn, repr=False)
@@ -71,10 +82,10 @@ class Bag:
 
     def damage_summary(self) -> str:
         """Why the bag is incomplete, in a few words."""
-        chunks = sum("chunk at offset" in d for d in self.damage)
-        rest = [d.split(" (")[0] if "chunk at offset" not in d else "" for d in self.damage]
+        chunks = sum(d.kind == "chunk" for d in self.damage)
+        rest = [d.short for d in self.damage if d.kind != "chunk"]
         parts = ([f"{chunks} corrupted chunk{'s' if chunks > 1 else ''} skipped"] if chunks else [])
-        return "; ".join(parts + [r for r in rest if r]) or "incomplete"
+        return "; ".join(parts + rest) or "incomplete"
 
     def sort_by_log_time(self, on_warning) -> None:
         """Each topic's messages in log-time order (as MCAP readers give them),
@@ -108,7 +119,7 @@ def read_bag(path: str | Path, topics: Iterable[str] | None = None,
     else:
         bag.files = [path]
     for f in bag.files:
-        _read_mcap(f, bag, wanted, on_warning)
+        _McapScan(f, bag, wanted, on_warning).run()
     bag.sort_by_log_time(on_warning)
     return bag
 
@@ -139,19 +150,8 @@ def _files_from_metadata(meta: Path, bag: Bag) -> list[Path]:
     return files
 
 
-def _string(buf, pos: int) -> tuple[str, int]:
-    n = struct.unpack_from("<I", buf, pos)[0]
-    return bytes(buf[pos + 4:pos + 4 + n]).decode(), pos + 4 + n
-
-
-def _string_map(buf, pos: int) -> tuple[dict[str, str], int]:
-    n = struct.unpack_from("<I", buf, pos)[0]
-    end, pos, out = pos + 4 + n, pos + 4, {}
-    while pos < end:
-        k, pos = _string(buf, pos)
-        v, pos = _string(buf, pos)
-        out[k] = v
-    return out, end
+class _ChunkDamage(Exception):
+    """One chunk cannot be decompressed as it declares (the chunk is skipped, not the bag)."""
 
 
 def _decompress(kind: str, data, size: int, where: str) -> bytes:
@@ -162,7 +162,7 @@ def _decompress(kind: str, data, size: int, where: str) -> bytes:
         data = bytes(data)
         declared = zstandard.frame_content_size(data)
         if declared > size:                    # a damaged frame header: never allocate what it claims
-            raise BagError(f"{where}: a zstd frame declares {declared} bytes in a chunk of {size}")
+            raise _ChunkDamage(f"a zstd frame declares {declared} bytes in a chunk of {size}")
         return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
     if kind == "lz4":
         import lz4.frame
@@ -172,16 +172,13 @@ def _decompress(kind: str, data, size: int, where: str) -> bytes:
 
 #: A chunk's records, uncompressed, are at most this [bytes] (ours are about 1 MiB).
 MAX_CHUNK_BYTES = 1 << 30
-#: Footer record: opcode, length 20, summary start, summary offset start, summary CRC [bytes].
-FOOTER_BYTES = 29
-_CHUNK, _DATA_END, _FOOTER, _METADATA = 0x06, 0x0F, 0x02, 0x0C
 
 
 def _has_footer(buf: bytes) -> bool:
     """Whether ``buf`` ends in an MCAP footer record and the magic."""
     n = len(buf)
     at = n - 8 - FOOTER_BYTES
-    return (at >= 8 and buf[n - 8:] == MAGIC and buf[at] == _FOOTER
+    return (at >= 8 and buf[n - 8:] == MAGIC and buf[at] == Op.FOOTER
             and struct.unpack_from("<Q", buf, at + 1)[0] == FOOTER_BYTES - 9)
 
 
@@ -194,22 +191,22 @@ def _check_summary(buf: bytes, f: Path, on_warning) -> None:
         on_warning(f"{f}: summary section CRC mismatch (the summary is not used for reading)")
 
 
-def _chunk_records(rec, f: Path, offset: int) -> tuple[bytes | None, str]:
+def _chunk_records(rec, f: Path) -> tuple[bytes | None, str]:
     """The uncompressed records of the Chunk whose content is ``rec``, checked
     against its size and CRC (CRC 0: not computed, accepted); else None and why."""
     size, crc = struct.unpack_from("<QI", rec, 16)
     if size > MAX_CHUNK_BYTES:
         return None, f"declares {size} uncompressed bytes, more than the limit of {MAX_CHUNK_BYTES}"
-    kind, q = _string(rec, 28)
+    kind, q = decode_string(rec, 28)
     clen = struct.unpack_from("<Q", rec, q)[0]
     if q + 8 + clen > len(rec):
         return None, "its compressed size runs past the record"
     try:
         raw = _decompress(kind, rec[q + 8:q + 8 + clen], size, str(f))
-    except BagError as exc:
-        if "unsupported chunk compression" in str(exc):
-            raise
-        return None, str(exc).split(": ", 1)[-1]
+    except _ChunkDamage as exc:
+        return None, str(exc)
+    except BagError:                                          # a compression we cannot read: the whole bag
+        raise
     except Exception as exc:                                  # zstd/lz4 on damaged bytes
         return None, f"does not decompress ({type(exc).__name__})"
     if len(raw) != size:
@@ -219,28 +216,82 @@ def _chunk_records(rec, f: Path, offset: int) -> tuple[bytes | None, str]:
     return raw, ""
 
 
-def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
-    """Scan one MCAP file record by record (chunks decompressed and checked
+class _McapScan:
+    """One MCAP file scanned record by record (chunks decompressed and checked
     as they come). A chunk whose CRC or size does not match is named, skipped
     and the bag marked incomplete; so is a data section whose CRC does not
     match (DataEnd), and a record that cannot be parsed ends the scan: as a
     truncation if the file has no footer, as damage if it has one."""
-    buf = read_bytes(f, error=BagError)
-    bag.size += len(buf)
-    if buf[:8] != MAGIC:
-        raise BagError(f"{f}: not an MCAP file (no MCAP magic at the start)")
-    schemas: dict[int, str] = {}
-    channels: dict[int, str] = {}
-    footer = _has_footer(buf)
-    pos, chunks, bad_chunks, data_end, data_checked = 8, 0, 0, False, False
-    n = len(buf)
 
-    def damaged(what: str) -> None:
-        bag.complete = False
-        bag.damage.append(what)
-        on_warning(f"{f}: {what}")
+    def __init__(self, f: Path, bag: Bag, wanted: set[str] | None, on_warning):
+        self.f, self.bag, self.wanted, self.on_warning = f, bag, wanted, on_warning
+        self.schemas: dict[int, str] = {}
+        self.channels: dict[int, str] = {}
+        self.chunks = self.bad_chunks = 0
+        self.data_end = self.data_checked = False
 
-    def take(records, origin: str) -> None:
+    def run(self) -> None:
+        buf = read_bytes(self.f, error=BagError)
+        self.bag.size += len(buf)
+        if buf[:8] != MAGIC:
+            raise BagError(f"{self.f}: not an MCAP file (no MCAP magic at the start)")
+        pos = 8
+        try:
+            pos = self._data_section(buf)
+        except (struct.error, UnicodeDecodeError, BagError):
+            pass                                              # a torn record: stop at the last good one
+        self._finish(buf, pos)
+
+    def _damaged(self, kind: str, what: str, short: str = "") -> None:
+        self.bag.complete = False
+        self.bag.damage.append(Damage(kind, what, short or what))
+        self.on_warning(f"{self.f}: {what}")
+
+    def _data_section(self, buf: bytes) -> int:
+        """Read the top-level records up to DataEnd or the footer; the position reached."""
+        view, n, pos = memoryview(buf), len(buf), 8
+        while pos + 9 <= n:
+            op = buf[pos]
+            ln = struct.unpack_from("<Q", buf, pos + 1)[0]
+            body = pos + 9
+            if body + ln > n:
+                break                                         # truncated (or damaged) record
+            rec = view[body:body + ln]
+            if op == Op.CHUNK:
+                self._chunk(rec, pos)
+            elif op in (Op.SCHEMA, Op.CHANNEL, Op.MESSAGE):
+                self._records(view[pos:body + ln], str(self.f))
+            elif op == Op.METADATA:
+                name, q = decode_string(rec, 0)
+                meta, _ = decode_string_map(rec, q)
+                if name == "rosbag2" and "serialized_metadata" in meta:
+                    _custom_from_serialized(meta["serialized_metadata"], self.bag, self.f)
+            elif op == Op.DATA_END:
+                crc = struct.unpack_from("<I", rec, 0)[0] if ln >= 4 else 0
+                if crc and zlib.crc32(view[:pos]) != crc and not self.bad_chunks:
+                    self._damaged("data", "data section CRC mismatch (a record outside the chunks is damaged)",
+                                  "data section CRC mismatch")
+                self.data_end, self.data_checked = True, crc != 0
+                return body + ln
+            elif op == Op.FOOTER:
+                return pos
+            pos = body + ln
+        return pos
+
+    def _chunk(self, rec, pos: int) -> None:
+        raw, why = _chunk_records(rec, self.f)
+        if raw is None:
+            self.bad_chunks += 1
+            self._damaged("chunk", f"chunk at offset {pos} is corrupted ({why}): skipped")
+            return
+        try:
+            self._records(memoryview(raw), f"{self.f}: chunk at offset {pos}")
+            self.chunks += 1
+        except (struct.error, UnicodeDecodeError, BagError):
+            self.bad_chunks += 1
+            self._damaged("chunk", f"chunk at offset {pos} holds a malformed record: skipped")
+
+    def _records(self, records, origin: str) -> None:
         """Schemas, channels and messages of ``records``, kept only if all parse."""
         got: list[tuple[str, int, bytes]] = []
         p, end = 0, len(records)
@@ -250,90 +301,55 @@ def _read_mcap(f: Path, bag: Bag, wanted: set[str] | None, on_warning) -> None:
             body = p + 9
             if body + ln > end:
                 raise BagError(f"{origin}: a record runs past its end")
-            if op == 0x05:                                   # Message
+            if op == Op.MESSAGE:
                 cid = struct.unpack_from("<H", records, body)[0]
-                topic = channels.get(cid)
-                if topic is not None and (wanted is None or topic in wanted):
+                topic = self.channels.get(cid)
+                if topic is not None and (self.wanted is None or topic in self.wanted):
                     t = struct.unpack_from("<Q", records, body + 6)[0]
                     got.append((topic, t, bytes(records[body + 22:body + ln])))
-            elif op == 0x03:                                 # Schema
+            elif op == Op.SCHEMA:
                 sid = struct.unpack_from("<H", records, body)[0]
-                name, _ = _string(records, body + 2)
-                schemas[sid] = name
-            elif op == 0x04:                                 # Channel
-                cid, sid = struct.unpack_from("<HH", records, body)
-                topic, q = _string(records, body + 4)
-                enc, q = _string(records, q)
-                meta, _ = _string_map(records, q)
-                if cid not in channels:
-                    channels[cid] = topic
-                    bag.types.setdefault(topic, schemas.get(sid, ""))
-                    bag.encodings.setdefault(topic, enc)
-                    bag.qos.setdefault(topic, meta.get("offered_qos_profiles", ""))
-                    bag.messages.setdefault(topic, [])
+                self.schemas[sid], _ = decode_string(records, body + 2)
+            elif op == Op.CHANNEL:
+                self._channel(records, body)
             p = body + ln
         for topic, t, data in got:
-            bag.messages[topic].append((t, data))
+            self.bag.messages[topic].append((t, data))
 
-    view = memoryview(buf)
-    try:
-        while pos + 9 <= n:
-            op = buf[pos]
-            ln = struct.unpack_from("<Q", buf, pos + 1)[0]
-            body = pos + 9
-            if body + ln > n:
-                break                                         # truncated (or damaged) record
-            rec = view[body:body + ln]
-            if op == _CHUNK:
-                raw, why = _chunk_records(rec, f, pos)
-                if raw is None:
-                    bad_chunks += 1
-                    damaged(f"chunk at offset {pos} is corrupted ({why}): skipped")
-                else:
-                    try:
-                        take(memoryview(raw), f"{f}: chunk at offset {pos}")
-                        chunks += 1
-                    except (struct.error, UnicodeDecodeError, BagError):
-                        bad_chunks += 1
-                        damaged(f"chunk at offset {pos} holds a malformed record: skipped")
-            elif op in (0x03, 0x04, 0x05):
-                take(view[pos:body + ln], str(f))
-            elif op == _METADATA:
-                name, q = _string(rec, 0)
-                meta, _ = _string_map(rec, q)
-                if name == "rosbag2" and "serialized_metadata" in meta:
-                    _custom_from_serialized(meta["serialized_metadata"], bag, f)
-            elif op == _DATA_END:
-                crc = struct.unpack_from("<I", rec, 0)[0] if ln >= 4 else 0
-                if crc and zlib.crc32(view[:pos]) != crc and not bad_chunks:
-                    damaged("data section CRC mismatch (a record outside the chunks is damaged)")
-                data_end, data_checked = True, crc != 0
-                pos = body + ln
-                break
-            elif op == _FOOTER:
-                break
-            pos = body + ln
-    except (struct.error, UnicodeDecodeError, BagError):
-        pass                                                  # a torn record: stop at the last good one
-    if data_end and footer:
-        _check_summary(buf, f, on_warning)
-        return
-    if data_end and data_checked:          # the data section is all there and its CRC checked
-        on_warning(f"{f}: the summary or footer after the data section is damaged; "
-                   "the data section is intact (its CRC checked)")
-        return
-    lost = n - pos
-    if footer:
-        damaged(f"damaged record at offset {pos} (the footer is there: not a truncation): "
-                f"kept {chunks} chunks, {sum(map(len, bag.messages.values()))} messages; "
-                f"the last {lost} bytes unread")
-        bag.lost_bytes += lost
-        return
-    bag.complete = False
-    bag.lost_bytes += lost
-    bag.damage.append(f"truncated, {lost} bytes lost")
-    on_warning(f"{f}: truncated (no MCAP footer): kept {chunks} complete chunks, "
-               f"{sum(map(len, bag.messages.values()))} messages; lost the last {lost} bytes")
+    def _channel(self, records, body: int) -> None:
+        cid, sid = struct.unpack_from("<HH", records, body)
+        topic, q = decode_string(records, body + 4)
+        enc, q = decode_string(records, q)
+        meta, _ = decode_string_map(records, q)
+        if cid not in self.channels:
+            self.channels[cid] = topic
+            self.bag.types.setdefault(topic, self.schemas.get(sid, ""))
+            self.bag.encodings.setdefault(topic, enc)
+            self.bag.qos.setdefault(topic, meta.get("offered_qos_profiles", ""))
+            self.bag.messages.setdefault(topic, [])
+
+    def _finish(self, buf: bytes, pos: int) -> None:
+        """What the end of the scan says: a whole file, damage after an intact data section, or a truncation."""
+        footer = _has_footer(buf)
+        if self.data_end and footer:
+            _check_summary(buf, self.f, self.on_warning)
+            return
+        if self.data_end and self.data_checked:          # the data section is all there and its CRC checked
+            self.on_warning(f"{self.f}: the summary or footer after the data section is damaged; "
+                            "the data section is intact (its CRC checked)")
+            return
+        lost = len(buf) - pos
+        messages = sum(map(len, self.bag.messages.values()))
+        self.bag.lost_bytes += lost
+        if footer:
+            self._damaged("record", f"damaged record at offset {pos} (the footer is there: not a truncation): "
+                                    f"kept {self.chunks} chunks, {messages} messages; the last {lost} bytes unread",
+                          f"damaged record at offset {pos}")
+            return
+        self.bag.complete = False
+        self.bag.damage.append(Damage("truncated", f"truncated, {lost} bytes lost", f"truncated, {lost} bytes lost"))
+        self.on_warning(f"{self.f}: truncated (no MCAP footer): kept {self.chunks} complete chunks, "
+                        f"{messages} messages; lost the last {lost} bytes")
 
 
 def _custom_from_serialized(text: str, bag: Bag, f: Path) -> None:

@@ -60,7 +60,7 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = ()) -> RecordedRun:
         raise BagError(f"{bag.path}: the bag is incomplete ({bag.damage_summary()}); "
                        "an incomplete run is not scored")
     cfg = bag.config(overrides)
-    step_ns = int(round(cfg.episode.step * 1e9))
+    step_ns = cfg.episode.step_ns
     st, cm, rf = bag.find(STATE, JOINT_STATE), bag.find(COMMAND, JOINT_STATE), bag.find(REFERENCE, FLOAT64_ARRAY)
     states, commands, refs = bag.messages[st], bag.messages[cm], bag.messages[rf]
     if not states or not commands or not refs:

@@ -197,16 +197,16 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
     state and gains, under ``prefix`` (e.g. ``/validation``). Log time is
     simulation time plus ``log_offset_ns``; stamps are simulation time."""
     from has_control.core.actuator import joint_state
-    from has_control.core.episode import EpisodeArrays
+    from has_control.core.episode import Col, EpisodeArrays
     from has_control.wire.topics import CONTROLLER_STATE_COLUMNS, GAINS_COLUMNS, REFERENCE_COLUMNS
     from has_control.wire.codec import column_label
     from has_control.core.reference import reference
     d = trace.data
     n = len(d)
-    step_ns = int(round(cfg.episode.step * 1e9))
+    step_ns = cfg.episode.step_ns
     stamps = np.arange(n, dtype=np.int64) * step_ns
-    t = d[:, 0]
-    js = joint_state(d[:, 2], d[:, 3], d[:, 4], d[:, 5], cfg.actuator.as_array())
+    t = d[:, Col.t]
+    js = joint_state(d[:, Col.y], d[:, Col.ydot], d[:, Col.P1], d[:, Col.P2], cfg.actuator.as_array())
     pos, vel, eff = js[0:3], js[3:6], js[6:9]
     rp = EpisodeArrays.from_config(cfg).reference
     ref = np.array([(ti, *reference(rp, ti)) for ti in t]).reshape(n, 5)
@@ -214,10 +214,10 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
     topics = {
         STATE: (JOINT_STATE, cdr.encode_joint_states(stamps, STATE_NAMES, np.column_stack(pos),
                                                      np.column_stack(vel), np.column_stack(eff))),
-        COMMAND: (JOINT_STATE, cdr.encode_joint_states(stamps, COMMAND_NAMES, d[:, 6:7])),
+        COMMAND: (JOINT_STATE, cdr.encode_joint_states(stamps, COMMAND_NAMES, d[:, [Col.u]])),
         REFERENCE: (FLOAT64_ARRAY, cdr.encode_float64_arrays(ref, column_label(REFERENCE_COLUMNS))),
         CONTROLLER_STATE: (FLOAT64_ARRAY, cdr.encode_float64_arrays(
-            np.column_stack([t, d[:, 7], d[:, 8], d[:, 9], d[:, 10], d[:, 11], d[:, 1]]),
+            d[:, [Col.t, Col.e1, Col.e2, Col.e3, Col.a1_hat, Col.a2_hat, Col.x1d]],
             column_label(CONTROLLER_STATE_COLUMNS))),
         GAINS: (FLOAT64_ARRAY, cdr.encode_float64_arrays([[0.0, *k]], column_label(GAINS_COLUMNS))),
     }

@@ -13,7 +13,7 @@ from has_control.config.scenario_files import (  # noqa: F401
     MAX_SCENARIOS, SCENARIO_PREFIXES, Scenario, load_scenarios, scenario_configs, scenarios_from_json,
 )
 from has_control.config.schema import (  # noqa: F401
-    CONFIG_DIR, GAIN_MAX, MAX_SAMPLES, SEED_LIMIT, build_config, check_gain, config_parameters,
+    CONFIG_DIR, GAIN_MAX, MAX_SAMPLES, SEED_LIMIT, SEED_RANGE, build_config, check_gain, config_parameters,
     default_config_files, finite_number, is_seed, load_config, parameter_comments, parameter_kind, with_horizon,
 )
 from has_control.config.yaml_safe import MAX_YAML_DEPTH, flatten, load_yaml  # noqa: F401

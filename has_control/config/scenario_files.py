@@ -29,7 +29,7 @@ import numpy as np
 from has_control.common.errors import ConfigError, shown
 from has_control.common.files import read_text
 from has_control.config.params_file import MAX_CONFIG_BYTES
-from has_control.config.schema import build_config, finite_number, is_seed
+from has_control.config.schema import SEED_RANGE, build_config, finite_number, is_seed
 from has_control.config.yaml_safe import flatten, load_yaml
 from has_control.core.params import Config
 
@@ -113,7 +113,7 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_SCENARIOS:
         raise ConfigError(f"{where}.count = {shown(count)}: expected a whole number in 1..{MAX_SCENARIOS}")
     if not is_seed(seed):
-        raise ConfigError(f"{where}.seed = {shown(seed)}: expected a whole number in [0, 2^63)")
+        raise ConfigError(f"{where}.seed = {shown(seed)}: expected a whole number in {SEED_RANGE}")
     prefix = spec.get("prefix", "random")
     if not isinstance(prefix, str) or not prefix:
         raise ConfigError(f"{where}.prefix = {shown(prefix)}: expected a name (the draws are PREFIX-000, ...)")

@@ -79,6 +79,7 @@ def _pair(check: Callable[[float], str | None]) -> Callable[[Any], str | None]:
 
 #: A seed: a whole number in [0, SEED_LIMIT).
 SEED_LIMIT = 2**63
+SEED_RANGE = "[0, 2^63)"             # SEED_LIMIT in words, for error lines
 
 
 def is_seed(v: Any) -> bool:
@@ -175,7 +176,7 @@ def _coerce(key: str, value: Any, kind: Any, source: str) -> Any:
         return tuple(number(v) for v in value)
     if kind == "seed":
         if not is_seed(value):
-            raise bad("expected a whole number in [0, 2^63)")
+            raise bad(f"expected a whole number in {SEED_RANGE}")
         return value
     if isinstance(kind, Mapping):
         if not isinstance(value, str) or value not in kind:

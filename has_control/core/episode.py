@@ -14,6 +14,7 @@ import math
 import os
 import threading
 from dataclasses import dataclass
+from enum import IntEnum
 
 import numpy as np
 import numba
@@ -33,8 +34,27 @@ from has_control.core.params import (
 from has_control.core.reference import reference, reference_array
 from has_control.core.scenarios import evaluate_scenarios
 
-#: Columns of a trace, in order. Units: s, m, m, m/s, Pa, Pa, m, m, m/s, N, N·s/m, m³/(s·Pa).
-TRACE_COLUMNS = ("t", "x1d", "y", "ydot", "P1", "P2", "u", "e1", "e2", "e3", "a1_hat", "a2_hat")
+
+class Col(IntEnum):
+    """The columns of a trace, in order, by name: ``trace.data[:, Col.e1]``.
+    Units: t [s], x1d and y [m], ydot [m/s], P1 and P2 [Pa], u [m], e1 [m],
+    e2 [m/s], e3 [N], a1_hat [N·s/m], a2_hat [m³/(s·Pa)]."""
+
+    t = 0
+    x1d = 1
+    y = 2
+    ydot = 3
+    P1 = 4
+    P2 = 5
+    u = 6
+    e1 = 7
+    e2 = 8
+    e3 = 9
+    a1_hat = 10
+    a2_hat = 11
+
+
+TRACE_COLUMNS = tuple(c.name for c in Col)
 _NCOL = len(TRACE_COLUMNS)
 
 #: Lanes of one block of the batch kernel: a compile-time constant, so the
@@ -306,7 +326,7 @@ class Trace:
     gains: Gains
 
     def __getitem__(self, column: str) -> np.ndarray:
-        return self.data[:, TRACE_COLUMNS.index(column)]
+        return self.data[:, Col[column]]
 
 
 def simulate(cfg: Config | None = None, gains: Gains | tuple | None = None,
@@ -375,4 +395,4 @@ def _as_gains(g) -> Gains:
     return Gains(k1, k2, k3)
 
 
-__all__ = ["TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs"]
+__all__ = ["Col", "TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs"]

@@ -241,6 +241,11 @@ class Episode:
     y_limit: float = 1.0
 
     @property
+    def step_ns(self) -> int:
+        """The step [ns], as message stamps count it."""
+        return int(round(self.step * 1e9))
+
+    @property
     def samples(self) -> int:
         """n = round(T/Δt)."""
         return int(round(self.horizon / self.step))

@@ -48,7 +48,13 @@ MAX_EVALUATIONS = 10_000_000        # particles x iterations
 
 
 class SwarmError(HasControlError, ValueError):
-    """Invalid swarm settings or bounds (one line naming the setting)."""
+    """Invalid swarm settings or bounds (one line naming the setting); ``key``
+    is the setting at fault (``variant``, ``seed``, ``lower``, ...), or
+    ``bounds`` when it is the pair of bounds."""
+
+    def __init__(self, message: str, key: str | None = None):
+        super().__init__(message)
+        self.key = key
 
 
 @dataclass(frozen=True)
@@ -83,7 +89,7 @@ class SwarmSettings:
 
     def validate(self) -> "SwarmSettings":
         def bad(name, why):
-            raise SwarmError(f"swarm.{name} = {shown(getattr(self, name))}: {why}")
+            raise SwarmError(f"swarm.{name} = {shown(getattr(self, name))}: {why}", key=name)
         if self.variant not in VARIANTS:
             bad("variant", f"expected one of {', '.join(VARIANTS)}")
         if self.crazy_redraw not in CRAZY_REDRAWS:
@@ -117,14 +123,14 @@ def _check_bounds(bounds) -> tuple[np.ndarray, np.ndarray]:
     try:
         lo, hi = (np.asarray(b, dtype=np.float64).ravel() for b in bounds)
     except (TypeError, ValueError):
-        raise SwarmError(f"bounds = {bounds!r}: expected (lower, upper) sequences of numbers") from None
+        raise SwarmError(f"bounds = {bounds!r}: expected (lower, upper) sequences of numbers", key="bounds") from None
     if lo.shape != hi.shape or lo.size == 0:
-        raise SwarmError(f"bounds: lower {lo.tolist()} and upper {hi.tolist()} differ in length")
+        raise SwarmError(f"bounds: lower {lo.tolist()} and upper {hi.tolist()} differ in length", key="bounds")
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise SwarmError(f"bounds: lower {lo.tolist()} / upper {hi.tolist()} must be finite")
+        raise SwarmError(f"bounds: lower {lo.tolist()} / upper {hi.tolist()} must be finite", key="bounds")
     if np.any(lo >= hi):
         i = int(np.argmax(lo >= hi))
-        raise SwarmError(f"bounds[{i}]: lower {lo[i]:g} must be below upper {hi[i]:g}")
+        raise SwarmError(f"bounds[{i}]: lower {lo[i]:g} must be below upper {hi[i]:g}", key="bounds")
     return lo, hi
 
 

@@ -13,12 +13,14 @@ from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 
-from has_control.config import check_gain, default_config_files, finite_number, read_parameter_files
+from has_control.config import (
+    SEED_RANGE, Scenario, check_gain, default_config_files, finite_number, is_seed, read_parameter_files,
+    scenario_configs, scenarios_from_json,
+)
 from has_control.core.episode import evaluate_configs
 from has_control.common.errors import ConfigError, shown
 from has_control.core.params import Config
 from has_control.core.scenarios import Aggregate, parse_aggregate
-from has_control.config import Scenario, scenario_configs, scenarios_from_json
 from has_control.tuning.swarm import Swarm, SwarmError, SwarmResult, SwarmSettings, minimize
 
 TUNER_FILE = default_config_files()[0].parent / "tuner.yaml"
@@ -46,14 +48,14 @@ class Tuning:
         top = {k: changes.pop(k) for k in ("seed", "lower", "upper", "scenarios", "aggregate") if k in changes}
         t = dataclasses.replace(self, swarm=dataclasses.replace(self.swarm, **changes), **top)
         t.swarm.validate()
-        if isinstance(t.seed, bool) or not isinstance(t.seed, int) or not 0 <= t.seed < 2**64:
-            raise SwarmError(f"swarm.seed = {shown(t.seed)}: must be a whole number in [0, 2^64)")
+        if not is_seed(t.seed):
+            raise SwarmError(f"swarm.seed = {shown(t.seed)}: must be a whole number in {SEED_RANGE}", key="seed")
         Swarm(t.bounds, dataclasses.replace(t.swarm, particles=1, iterations=1), 0)    # bounds check
         for name in ("lower", "upper"):
             for i, v in enumerate(getattr(t, name)):
                 why = check_gain(v)
                 if why:
-                    raise SwarmError(f"bounds: swarm.{name}[{i}] = {v:g}: a gain {why}")
+                    raise SwarmError(f"bounds: swarm.{name}[{i}] = {v:g}: a gain {why}", key=name)
         return t
 
 
@@ -99,13 +101,11 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
     try:
         return t.replace(**changes)
     except SwarmError as exc:
-        msg = str(exc)
-        culprit = next((n for n in changes if msg.startswith(f"swarm.{n} ")), None)
-        if culprit is None and msg.startswith("bounds"):
-            named = [n for n in ("lower", "upper") if n in changes and f"swarm.{n}[" in msg]
-            culprit = next(iter(named or [n for n in ("lower", "upper") if n in changes]), None)
+        culprit = exc.key if exc.key in changes else None
+        if exc.key == "bounds":                        # the pair: the file that set either bound
+            culprit = next((n for n in ("lower", "upper") if n in changes), None)
         origin = where.get(culprit, "parameters") if culprit else ", ".join(sorted(set(where.values())))
-        raise ConfigError(f"{origin}: {msg}") from None
+        raise ConfigError(f"{origin}: {exc}") from None
 
 
 def tuning_parameters(t: Tuning) -> dict[str, Any]:

@@ -153,7 +153,7 @@ def warm_up() -> None:
     from has_control.core.params import Config
     cfg = Config()
     arr = EpisodeArrays.from_config(cfg)
-    step_ns = int(round(cfg.episode.step * 1e9))
+    step_ns = cfg.episode.step_ns
     state, clock, scr = STATE_LAYOUT.buffer(), CLOCK_LAYOUT.buffer(), scratch()
     x = np.append(arr.x0, 0.0)
     encode_state(x, arr.plant, 0, step_ns, state, clock, scr)
