@@ -71,3 +71,20 @@ class quiet_interrupts:
 
 with quiet_interrupts():        # the first second of every command, before cli.main can catch anything
     _load_compiled_modules()
+    # The public API, in groups (the package's own modules, loaded after the compiled core).
+
+    # Parameters and configuration files
+    from has_control.config import (  # noqa: E402,F401
+        build_config, load_config, load_scenarios, with_horizon,
+    )
+    from has_control.core.params import (  # noqa: E402,F401
+        Actuator, Adaptation, Config, Episode, Gains, Noise, Plant, Reference,
+    )
+
+    # Simulation and evaluation
+    from has_control.core.episode import Col, Trace, evaluate, evaluate_configs, simulate  # noqa: E402,F401
+    from has_control.core.scenarios import Aggregate, ScenarioScores, parse_aggregate  # noqa: E402,F401
+
+    # Tuning
+    from has_control.tuning.swarm import Swarm, SwarmResult, SwarmSettings, minimize  # noqa: E402,F401
+    from has_control.tuning.tuner import Tuning, load_tuning, tune  # noqa: E402,F401
