@@ -12,6 +12,7 @@ from typing import Callable, Iterable
 from has_control.common.files import MiB, read_bytes, read_text
 from has_control.bag.base import PARAMETERS_KEY, BagError, warn
 from has_control.bag.mcap_format import FOOTER_BYTES, MAGIC, Op, decode_string, decode_string_map
+from has_control.config import build_config, load_config, load_yaml, read_parameter_files
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,6 @@ class Bag:
 
     def config(self, overrides: Iterable[str | Path] = ()):
         """The run's Config from the bag (else the shipped defaults, with a warning)."""
-        from has_control.config import build_config, load_config, read_parameter_files
         overrides = list(overrides)
         stored = self.custom_data.get(PARAMETERS_KEY)
         if stored is None:
@@ -129,7 +129,6 @@ MAX_METADATA_BYTES = 16 * MiB
 
 
 def _files_from_metadata(meta: Path, bag: Bag) -> list[Path]:
-    from has_control.config import load_yaml
     doc = load_yaml(read_text(meta, MAX_METADATA_BYTES, BagError), str(meta), BagError, "malformed YAML")
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     if not isinstance(info, dict):
@@ -356,7 +355,6 @@ def _custom_from_serialized(text: str, bag: Bag, f: Path) -> None:
     """custom_data of the MCAP file's rosbag2 Metadata record (inside the
     CRC-checked data), if metadata.yaml gave none. metadata.yaml's wins (it may
     be edited on purpose), but never silently: a difference is warned about."""
-    from has_control.config import load_yaml
     try:
         doc = load_yaml(text, f"{f} (rosbag2 metadata)", BagError)
         info = doc.get("rosbag2_bagfile_information", doc)     # rosbag2 stores the inner mapping

@@ -11,6 +11,7 @@ from has_control.wire import cdr
 from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, STATE
 from has_control.bag.base import BagError, warn
 from has_control.bag.read import Bag, read_bag
+from has_control.core.cost import score_arrays
 
 
 @dataclass
@@ -86,7 +87,6 @@ def score_bag(path: str | Path, overrides: Iterable[str | Path] = (),
               on_warning: Callable[[str], None] = warn):
     """J, e_max, e_μ, e_σ of a recorded lock-step run (SPEC §6), as the core
     scores it; warnings (truncation, missing parameters) go to ``on_warning``."""
-    from has_control.core.cost import score_arrays
     bag = read_bag(path, topics=None, on_warning=on_warning)
     run = recorded_run(bag, overrides)
     return score_arrays(run["e1"], run.u, run.cfg.episode.as_array(), diverged=run.diverged), run

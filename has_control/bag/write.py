@@ -14,9 +14,17 @@ import numpy as np
 import yaml
 
 from has_control.wire import cdr
-from has_control.wire.topics import (CLOCK, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, FLOAT64_ARRAY, GAINS, JOINT_STATE,
-                                     REFERENCE, STATE, STATE_NAMES)
 from has_control.bag.base import BagError
+from has_control.bag.mcap_writer import McapWriter
+from has_control.config import config_parameters
+from has_control.core.actuator import joint_state
+from has_control.core.episode import Col, EpisodeArrays
+from has_control.core.reference import reference
+from has_control.wire.codec import column_label
+from has_control.wire.topics import (
+    CLOCK, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, FLOAT64_ARRAY, GAINS, GAINS_COLUMNS,
+    JOINT_STATE, REFERENCE, REFERENCE_COLUMNS, STATE, STATE_NAMES,
+)
 
 #: The ROS release whose message definitions (and type hashes) the bags carry.
 ROS_DISTRO = "kilted"
@@ -76,7 +84,6 @@ class BagWriter:
     ``metadata.yaml`` is written on :meth:`close`, as rosbags writes it."""
 
     def __init__(self, path: str | Path, custom_data: dict[str, str] | None = None, compression: str = "zstd"):
-        from has_control.bag.mcap_writer import McapWriter
         self.path = Path(path)
         self.custom_data = dict(custom_data or {})
         bad = [k for k, v in self.custom_data.items() if not isinstance(v, str)]
@@ -187,7 +194,6 @@ class BagWriter:
 
 
 def parameters_json(cfg) -> str:
-    from has_control.config import config_parameters
     return json.dumps(config_parameters(cfg))
 
 
@@ -196,11 +202,6 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
     the node graph publishes for it: state, command, reference, controller
     state and gains, under ``prefix`` (e.g. ``/validation``). Log time is
     simulation time plus ``log_offset_ns``; stamps are simulation time."""
-    from has_control.core.actuator import joint_state
-    from has_control.core.episode import Col, EpisodeArrays
-    from has_control.wire.topics import CONTROLLER_STATE_COLUMNS, GAINS_COLUMNS, REFERENCE_COLUMNS
-    from has_control.wire.codec import column_label
-    from has_control.core.reference import reference
     d = trace.data
     n = len(d)
     step_ns = cfg.episode.step_ns

@@ -27,6 +27,7 @@ from has_control.core.params import (
     ROAD_CLASSES, X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Noise, Plant,
     Reference,
 )
+from has_control.core.road import road_components
 
 
 def _config_dir() -> Path:
@@ -264,7 +265,6 @@ def _check_plant(cfg: Config, fail) -> None:
         fail("plant.valve_time_constant", plant.valve_time_constant,
              f"must be 0 (an ideal valve) or at least simulation.step ({ep.step:g} s), for the RK4 step")
     if ref.kind == "road":
-        from has_control.core.road import road_components
         if ref.cutoff >= 0.5 / ep.step:        # first: it bounds the number of components
             fail("reference.cutoff", ref.cutoff, f"must be below the Nyquist frequency {0.5 / ep.step:g} Hz")
         f, _, _ = road_components(ref, ep.samples * ep.step)

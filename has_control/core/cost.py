@@ -14,6 +14,7 @@ from numba import njit
 
 from has_control.core.jit import KERNEL, LEAF
 from has_control.core.params import DT, LAMBDA1, LAMBDA2, LAMBDA3, WIN_END, WIN_START
+from has_control.common.json_numbers import to_json
 
 
 @njit(**LEAF)
@@ -76,7 +77,6 @@ class Score:
 
     def as_json(self) -> dict:
         """The keys of ``has-control simulate --json``; inf as the string "inf"."""
-        from has_control.common.json_numbers import to_json
         return {"J": to_json(self.J), "e_max": to_json(self.e_max), "e_mu": to_json(self.e_mu),
                 "e_sigma": to_json(self.e_sigma), "samples": int(self.samples),
                 "diverged": bool(self.diverged)}

@@ -18,6 +18,7 @@ from has_control.core.params import (
     N_REFERENCE, REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE, REF_ROAD,
     REF_ROWS, REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP, Episode, Reference,
 )
+from has_control.core.road import road_table
 
 
 @njit(**INLINE)
@@ -73,7 +74,6 @@ def reference(rp, t):
 def _road_table(ref: Reference, episode: Episode) -> np.ndarray:
     """:func:`has_control.core.road.road_table`, built once per (reference, grid):
     every evaluation of a swarm iteration asks for the same tables."""
-    from has_control.core.road import road_table
     return road_table(ref, episode)
 
 

@@ -22,13 +22,14 @@ from numba import njit
 
 from has_control.core.abc_controller import abc_law, adapt
 from has_control.core.actuator import diverged, joint_state, valve_plant_step
-from has_control.core.episode import TRACE_COLUMNS, put_trace_row
 from has_control.core.jit import KERNEL
 from has_control.core.noise import measurement_noise, noise_on
 from has_control.core.reference import reference
 from has_control.wire.topics import (CLOCK_LAYOUT, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, REFERENCE_LAYOUT,
                                      STATE_LAYOUT)
 from has_control.wire.codec import MALFORMED, NOT_FINITE, get_f64, matches, put_f64, put_stamp, sample_of_stamp
+from has_control.core.episode import EpisodeArrays, TRACE_COLUMNS, put_trace_row
+from has_control.core.params import Config
 
 # Layouts as module constants: numba freezes them into the compiled code.
 _STATE_T, _STATE_FIXED, _STATE_V = STATE_LAYOUT.template, STATE_LAYOUT.fixed, STATE_LAYOUT.values
@@ -149,8 +150,6 @@ def warm_up() -> None:
     """Compile (or load from the cache) every sample function the nodes call,
     for the argument types they pass, before anything joins the graph (and,
     in ``has-control stack``, while Ctrl-C still ends the process quietly)."""
-    from has_control.core.episode import EpisodeArrays
-    from has_control.core.params import Config
     cfg = Config()
     arr = EpisodeArrays.from_config(cfg)
     step_ns = cfg.episode.step_ns
