@@ -13,6 +13,7 @@ import re
 import sys
 from pathlib import Path
 
+from has_control.cli import plot
 from has_control.common.errors import HasControlError
 
 EXIT_USAGE = 2
@@ -46,9 +47,10 @@ def _load(args):
 def _write_trace_csv(trace, path: str) -> None:
     import numpy as np
 
-    from has_control.core.episode import TRACE_COLUMNS
+    from has_control.core.episode import TRACE_COLUMNS, TRACE_UNITS
     from has_control.common.files import write_atomic
-    write_atomic(path, lambda tmp: np.savetxt(tmp, trace.data, delimiter=",", header=",".join(TRACE_COLUMNS),
+    header = ",".join(f"{c} [{u}]" for c, u in zip(TRACE_COLUMNS, TRACE_UNITS))
+    write_atomic(path, lambda tmp: np.savetxt(tmp, trace.data, delimiter=",", header=header,
                                               comments="", fmt="%.17g"))
 
 
@@ -62,8 +64,8 @@ def cmd_simulate(args) -> int:
     if args.trace:
         _write_trace_csv(trace, args.trace)
     if args.plot:
-        from has_control.plots.figures import plot_tracking
-        plot_tracking([(f"k = ({gains[0]:g}, {gains[1]:g}, {gains[2]:g})", trace)], args.plot)
+        from has_control.plots.run_figure import plot_runs, view_of_trace
+        plot_runs([view_of_trace(trace, cfg)], args.plot, "Simulated run (has-control simulate)")
     if args.json:
         print(json.dumps(s.as_json()))
     else:
@@ -197,12 +199,14 @@ def cmd_robustness(args) -> int:
     if len(labels) > len(gains):
         raise HasControlError(f"--label {labels[len(gains)]}: more labels than --gains")
     labels += [f"k = ({g[0]:g}, {g[1]:g}, {g[2]:g})" for g in gains[len(labels):]]
+    if args.baseline is not None and args.baseline not in labels:
+        raise HasControlError(f"--baseline {args.baseline}: no gain set has that --label ({', '.join(labels)})")
     scenarios = load_scenarios(args.scenarios, cfg)
     with _batch(args) as batch:
         table = robustness_table(gains, labels, cfg, scenarios, parse_aggregate(args.aggregate), batch)
     if args.plot:
         from has_control.plots.figures import plot_robustness
-        plot_robustness(table, args.plot)
+        plot_robustness(table, args.plot, args.baseline)
     if args.markdown:
         from has_control.common.files import write_atomic
         write_atomic(args.markdown, table.markdown())
@@ -456,7 +460,9 @@ def build_parser() -> argparse.ArgumentParser:
     rb.add_argument("--config", action="append", metavar="FILE", help="ros__parameters YAML (repeatable)")
     rb.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
     rb.add_argument("--dask", type=_dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
-    rb.add_argument("--plot", type=_figure_path, metavar="FILE.png", help="write J and e_max per scenario as a figure")
+    rb.add_argument("--plot", type=_figure_path, metavar="FILE.png",
+                    help="write each gain set's J relative to the baseline's, per scenario, as a figure")
+    rb.add_argument("--baseline", metavar="NAME", help="with --plot: the --label J is relative to (default: the first)")
     rb.add_argument("--markdown", metavar="FILE.md", help="write the table as Markdown")
     rb.add_argument("--json", action="store_true", help="print one JSON object")
     rb.set_defaults(func=cmd_robustness)
@@ -503,6 +509,10 @@ def build_parser() -> argparse.ArgumentParser:
     bi = sub.add_parser("bag-info", help="topics, types, counts and duration of a bag")
     bi.add_argument("bag", metavar="BAG")
     bi.set_defaults(func=cmd_bag_info)
+
+    plot.add_arguments(sub.add_parser("plot", help="recorded runs (bags) as one figure: position, error, valve, "
+                                      "pressures, estimates, gains"))
+    sub.choices["plot"].set_defaults(func=plot.run)
 
     rp2 = sub.add_parser("replay", help="publish a bag with its timing, or replay it to a controller")
     rp2.add_argument("bag", metavar="BAG")

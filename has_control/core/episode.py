@@ -35,6 +35,8 @@ from has_control.core.scenarios import evaluate_scenarios
 
 #: Columns of a trace, in order. Units: s, m, m, m/s, Pa, Pa, m, m, m/s, N, N·s/m, m³/(s·Pa).
 TRACE_COLUMNS = ("t", "x1d", "y", "ydot", "P1", "P2", "u", "e1", "e2", "e3", "a1_hat", "a2_hat")
+#: The unit of each column, in ASCII (a CSV header's: ``simulate --trace``).
+TRACE_UNITS = ("s", "m", "m", "m/s", "Pa", "Pa", "m", "m", "m/s", "N", "N*s/m", "m^3/(s*Pa)")
 _NCOL = len(TRACE_COLUMNS)
 
 #: Lanes of one block of the batch kernel: a compile-time constant, so the
@@ -375,4 +377,4 @@ def _as_gains(g) -> Gains:
     return Gains(k1, k2, k3)
 
 
-__all__ = ["TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs"]
+__all__ = ["TRACE_COLUMNS", "TRACE_UNITS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs"]
