@@ -163,9 +163,14 @@ def cmd_tune(args) -> int:
     progress = Progress()
 
     def artefacts(res, directory: Path) -> None:
+        from has_control.bag.series import run_series
         from has_control.plots.figures import plot_convergence, plot_gains
+        from has_control.plots.run_figure import gains_text, plot_runs, view_of_series
+        from has_control.tuning.session import SESSION
         plot_convergence([(res.variant, res.result)], directory / "convergence.png")
-        plot_gains(res.result, directory / "gains.png", f"{res.variant}, seed {res.seed}")
+        plot_gains(res.result, directory / "gains.png", f"Figs. 3-5: {res.variant}, seed {res.seed}")
+        plot_runs([view_of_series(run_series(directory / SESSION), f"tuned, {gains_text(res.gains)}")],
+                  directory / "tracking.png", f"{res.variant}, seed {res.seed}: the validation run (session bag)")
     try:
         with _batch(args) as batch:
             run = run_session(cfg, tuning, args.out, resume_dir=args.resume, replace=args.force,
@@ -185,7 +190,7 @@ def cmd_tune(args) -> int:
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
         if run.directory:
             print(f"wrote {run.directory / 'tune.json'}, gains.yaml (a --params-file for the controller), "
-                  f"convergence.png, gains.png and the session bag {run.bag}")
+                  f"convergence.png, gains.png, tracking.png and the session bag {run.bag}")
     return 0
 
 
@@ -437,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
     t.add_argument("--out", metavar="DIR",
                    help="write the session bag DIR/session (resumable), tune.json, gains.yaml (--params-file), "
-                        "convergence.png, gains.png")
+                        "convergence.png, gains.png, tracking.png (the validation run)")
     t.add_argument("--resume", metavar="DIR",
                    help="continue the session in DIR from its last complete iteration (its settings apply)")
     t.add_argument("--scenarios", metavar="FILE",

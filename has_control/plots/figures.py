@@ -56,6 +56,11 @@ def plot_gains(result, path: str | Path, title: str = "") -> Path:
 def plot_convergence_spread(groups, path: str | Path) -> Path:
     """Best J per iteration, one colour per variant: the one run, or the mean over
     seeds with the min-max band (paper Fig. 6), J on a log scale."""
+    return save(draw_convergence_spread(groups), path)
+
+
+def draw_convergence_spread(groups):
+    """The figure of :func:`plot_convergence_spread`."""
     with styled():
         fig, ax = plt.subplots(figsize=(WIDTH, 4.5))
         for i, (label_, results) in enumerate(groups):
@@ -71,7 +76,7 @@ def plot_convergence_spread(groups, path: str | Path) -> Path:
         ax.set_title("Fig. 6: convergence of J" + (" over seeds" if any(len(r) > 1 for _, r in groups) else ""))
         ax.legend(fontsize=8)
         fig.tight_layout()
-    return save(fig, path)
+    return fig
 
 
 #: Scenario kinds in the order the robustness figure groups them.

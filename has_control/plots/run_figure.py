@@ -106,14 +106,15 @@ def view_of_series(run: RunSeries, name: str | None = None) -> RunView:
 
 
 def _series_metrics(run: RunSeries) -> tuple[tuple[float, float, float] | None, str]:
+    """e_max, e_μ, e_σ of |e1| over the metric window (they need e1 only, not u):
+    SPEC §6's arithmetic when e1 is whole, else over the window's recorded samples."""
     ep = run.cfg.episode
     n = ep.samples
     e1 = run.e1
-    if len(e1) >= n and np.all(np.isfinite(e1[:n])) and np.all(np.isfinite(run.u[:n])):
-        bad = np.abs(run.y[:n]) > ep.y_limit
-        if bad.any():
+    if len(e1) >= n and np.all(np.isfinite(e1[:n])):
+        if np.any(np.abs(run.y[:n]) > ep.y_limit):
             return None, "diverged"
-        s = score_arrays(e1[:n], run.u[:n], ep.as_array())
+        s = score_arrays(e1[:n], np.nan_to_num(run.u[:n]), ep.as_array())   # J is not shown: u's gaps do not matter
         return (s.e_max, s.e_mu, s.e_sigma), ""
     lo, hi = ep.window()
     w = np.abs(e1[lo:hi + 1])
