@@ -10,7 +10,9 @@ topic is required. The signals, all SI:
 
 * state (``…/state``, JointState by joint name): y [m], ẏ [m/s], P1, P2 [Pa];
 * command (``…/command``): u [m], the valve command the controller sent;
-* reference (``…/controller/reference``; else the x1d of controller_state): x1d [m];
+* reference (``…/controller/reference``; else the x1d of controller_state): x1d [m]; where
+  the controller published none and the bag holds the run's parameters, the
+  reference they define (so e1 is whole wherever the state is);
 * controller_state: â1 [N·s/m], â2 [m³/(s·Pa)];
 * gains (``…/controller/gains``): (t [s], k1, k2, k3 [1/s]) each time they changed.
 
@@ -32,6 +34,7 @@ from has_control.bag.read import Bag, read_bag
 from has_control.common.errors import HasControlError
 from has_control.config import build_config
 from has_control.core.params import Config
+from has_control.core.reference import reference, reference_array
 from has_control.wire import cdr
 from has_control.wire.topics import (
     COMMAND, COMMAND_NAMES, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, FLOAT64_ARRAY, GAINS, GAINS_COLUMNS,
@@ -121,6 +124,8 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
     elif not cs:
         raise BagError(f"{bag.path}: no '…/{REFERENCE}' nor '…/{CONTROLLER_STATE}' ({FLOAT64_ARRAY}): "
                        "no reference to plot the error against")
+    if PARAMETERS_KEY in bag.custom_data:
+        x1d = _fill_reference(x1d, cfg, step)
     gt, gk = _gains(bag, cfg)
     return RunSeries(Path(bag.path).name or str(bag.path), cfg, np.arange(n) * step, out["y"], out["ydot"],
                      out["p1"], out["p2"], u, x1d, a1, a2, gt, gk, missing, PARAMETERS_KEY in bag.custom_data)
@@ -141,6 +146,19 @@ def _config(bag: Bag, stamps: np.ndarray, overrides) -> tuple[Config, float]:
     except HasControlError:                     # too short for the metric window: keep Δt only
         cfg = build_config({"simulation.step": step}, source=f"{bag.path} (Δt from the recording)", base=cfg)
     return cfg, step
+
+
+def _fill_reference(x1d: np.ndarray, cfg: Config, step: float) -> np.ndarray:
+    """x1d where the controller published none (it did not answer that state):
+    the run's reference, a function of its stored parameters, as the realtime
+    stack scores it; so e1 = x1d − y is whole wherever the state is."""
+    gaps = np.flatnonzero(np.isnan(x1d))
+    if not gaps.size:
+        return x1d
+    rp = reference_array(cfg.reference, cfg.episode)
+    out = x1d.copy()
+    out[gaps] = [reference(rp, i * step)[0] for i in gaps]
+    return out
 
 
 def _samples(stamps_ns: np.ndarray, step: float, what: str) -> np.ndarray:

@@ -40,6 +40,8 @@ MM, UM, BAR, A2_UNIT = 1e3, 1e6, 1e-5, 1e12          # m -> mm, m -> µm, Pa -> 
 #: Panels, top to bottom, and their relative heights.
 PANELS = (("position", 1.0), ("error", 1.6), ("valve", 1.0), ("pressure", 1.0), ("a1", 0.8), ("a2", 0.8),
           ("gains", 0.8))
+#: Height of one line of text in the error panel [fraction of the panel].
+TEXT_ROW = 0.085
 #: Lines longer than this are rasterised in PDF and SVG (the data stays on the Axes).
 RASTER_POINTS = 5000
 
@@ -183,8 +185,9 @@ def _position(ax, views) -> None:
     for i, v in enumerate(views):
         ax.plot(v.t, v.y * MM, color=colour(i), lw=1.1, label=f"y, {v.label}")
     ax.set_ylabel(label("position", "mm"))
-    ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=min(len(views) + 1, 3), fontsize=8,
-              frameon=False, borderaxespad=0.1)
+    short = max(len(v.label) for v in views) <= 28
+    ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=min(len(views) + 1, 3) if short else 1,
+              fontsize=8, frameon=False, borderaxespad=0.1)
 
 
 def _error(ax, views) -> None:
@@ -207,8 +210,10 @@ def _error(ax, views) -> None:
     if base.size:
         low = 0.3 * float(np.percentile(base, 0.5))
         high = 2.0 * float(allv.max())
-        if high > low > 0:
-            ax.set_ylim(low, high)
+        if high > low > 0:                     # head room for the metrics' lines: the top TEXT_ROW per run
+            decades = math.log10(high / low)
+            top = 0.04 + TEXT_ROW * len(views)
+            ax.set_ylim(low, high * 10 ** (decades * top / (1.0 - top)))
     ax.set_ylabel(label("|e1|", "µm"))
     lines = []
     for i, v in enumerate(views):
@@ -220,7 +225,7 @@ def _error(ax, views) -> None:
             text = f"{v.label}: {text}" if len(views) > 1 else text
         lines.append((text, colour(i)))
     for k, (text, col) in enumerate(lines):
-        ax.text(0.99, 0.97 - 0.11 * k, text, transform=ax.transAxes, ha="right", va="top", fontsize=8.5,
+        ax.text(0.99, 0.97 - TEXT_ROW * k, text, transform=ax.transAxes, ha="right", va="top", fontsize=8.5,
                 color=col, bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.8))
     if w is not None:
         ax.legend(handles=[ax.patches[0]], loc="lower right", fontsize=8)
