@@ -1,6 +1,5 @@
 """Figures, checked through the data they plot (matplotlib Axes), never pixels:
 the run figure of a bag or a trace, ``has-control plot``, and the robustness figure."""
-import os
 import re
 import shutil
 import subprocess
@@ -17,7 +16,8 @@ from has_control.config import build_config, load_scenarios, with_horizon
 from has_control.core.episode import simulate
 from has_control.core.params import Config
 from has_control.core.scenarios import Aggregate, ScenarioScores
-from has_control.nodes.stack import run_stack
+from has_control.nodes.pacing import LoopStats, _extend
+from has_control.nodes.stack import missed_messages, run_stack
 from has_control.plots.figures import draw_convergence_spread, draw_robustness
 from has_control.plots.run_figure import draw, view_of_series, view_of_trace
 from has_control.tuning.robustness import RobustnessTable, scenario_kind
@@ -46,7 +46,7 @@ def cli(*args):
 def _rewrite(src, dst, keep=lambda topic, i: True, custom=True, extra=()):
     """A copy of bag ``src`` at ``dst`` with only the messages ``keep(topic, index)``
     accepts, without the stored parameters unless ``custom``, plus ``extra``
-    messages (topic, log time [ns], bytes)."""
+    Float64MultiArray messages (topic, log time [ns], bytes)."""
     bag = read_bag(src)
     with BagWriter(dst, bag.custom_data if custom else {}) as w:
         for topic, ty in bag.types.items():
@@ -57,6 +57,7 @@ def _rewrite(src, dst, keep=lambda topic, i: True, custom=True, extra=()):
                 if keep(topic, i):
                     w.write(topic, t, data)
         for topic, t, data in extra:
+            w.add_topic(topic, "std_msgs/msg/Float64MultiArray")      # no-op for a topic the bag has
             w.write(topic, t, data)
     return dst
 
@@ -81,7 +82,8 @@ def test_the_plotted_error_is_the_scored_error_over_the_shaded_metric_window(rec
     assert ax.get_yscale() == "log" and ax.get_ylabel() == "|e1| [µm]"
     lo, hi = cfg.episode.window()
     span = ax.patches[0]                                      # axvspan: a rectangle, x in data
-    assert (span.get_x(), span.get_x() + span.get_width()) == pytest.approx((lo * cfg.episode.step, hi * cfg.episode.step), abs=1e-12)
+    dt = cfg.episode.step
+    assert (span.get_x(), span.get_x() + span.get_width()) == pytest.approx((lo * dt, hi * dt), abs=1e-12)
     texts = " ".join(t.get_text() for t in ax.texts)
     assert f"e_max {score.e_max * 1e6:.3g}" in texts and f"e_σ {score.e_sigma * 1e6:.3g}" in texts
     assert rf.views[0].metrics == (score.e_max, score.e_mu, score.e_sigma)   # score's arithmetic, bit for bit
@@ -148,6 +150,40 @@ def test_a_realtime_bag_with_unanswered_samples_is_plotted_with_them_marked(reco
     out = tmp_path / "rt.png"
     r = cli("plot", b, "--out", out)
     assert r.returncode == 0 and out.read_bytes()[:4] == b"\x89PNG", r.stderr
+
+
+def test_missed_and_fail_safe_samples_recorded_by_a_realtime_stack_are_marked(recorded, tmp_path):
+    d, cfg = recorded
+    stats = LoopStats(300_000)
+    for i in (5, 6, 7, 20):                                   # as run_paced counts them
+        _extend(stats.missed_spans, i)
+    _extend(stats.failsafe_spans, 7)
+    assert stats.missed_spans == [[5, 7], [20, 20]] and stats.failsafe_spans == [[7, 7]]
+    log = [(i, 0.0, 0.0, 0.0, 0.0, i * 1e-6) for i in range(30)]  # (sample, y, ẏ, P1, P2, u it ran with)
+    msgs = missed_messages(stats, log, cfg.episode.step)
+    rows = cdr.float64_arrays(msgs)
+    np.testing.assert_allclose(rows, [[5 * 3e-4, 5e-6, 0], [6 * 3e-4, 6e-6, 0], [7 * 3e-4, 7e-6, 1],
+                                      [20 * 3e-4, 2e-5, 0]], rtol=1e-15)
+    b = _rewrite(d, tmp_path / "rt", extra=[("/plant/missed", round(r[0] * 1e9), m) for r, m in zip(rows, msgs)])
+    s = run_series(b)
+    assert list(s.missed) == [5, 6, 7, 20] and list(s.failsafe) == [7]
+    rf = draw([view_of_series(s)])
+    valve = rf.axes["valve"]
+    np.testing.assert_allclose(_line(valve, "missed: ran on the held command (4 samples)").get_xdata(),
+                               np.array([5, 6, 7, 20]) * cfg.episode.step)
+    np.testing.assert_allclose(_line(valve, "fail-safe: valve centred (1 sample)").get_xdata(), [7 * cfg.episode.step])
+    matplotlib.pyplot.close(rf.fig)
+    assert run_series(d).missed is None                       # a lock-step bag does not say
+
+
+def test_a_realtime_stack_bag_records_every_missed_sample(tmp_path):
+    cfg = with_horizon(Config(), HORIZON)
+    run = run_stack(cfg, record=tmp_path / "rt", realtime=True, domain_id=230)
+    bag = read_bag(tmp_path / "rt")
+    assert "/plant/missed" in bag.types                       # declared even when nothing was missed
+    s = run_series(tmp_path / "rt")
+    assert len(s.missed) == run.loop["missed_samples"] and len(s.failsafe) == run.loop["failsafe_samples"]
+    assert list(s.missed[:len(run.missed_at)]) == run.missed_at
 
 
 def test_a_bag_converted_by_rosbags_convert_plots_like_the_original(recorded, tmp_path):

@@ -14,7 +14,12 @@ topic is required. The signals, all SI:
   the controller published none and the bag holds the run's parameters, the
   reference they define (so e1 is whole wherever the state is);
 * controller_state: â1 [N·s/m], â2 [m³/(s·Pa)];
-* gains (``…/controller/gains``): (t [s], k1, k2, k3 [1/s]) each time they changed.
+* gains (``…/controller/gains``): (t [s], k1, k2, k3 [1/s]) each time they changed;
+* missed samples (``…/plant/missed``, a realtime stack's bag): the samples the
+  plant ran without their command (held), and those on the fail-safe (valve
+  centred). A bag without this topic does not say; a sample whose command is
+  absent from the bag was surely missed (``missing['command']``), one whose
+  command came late cannot be told.
 
 A bag without the run's parameters (``rosbags-convert`` drops ``custom_data``)
 is read with the shipped configuration, Δt taken from the state stamps and
@@ -38,7 +43,7 @@ from has_control.core.reference import reference, reference_array
 from has_control.wire import cdr
 from has_control.wire.topics import (
     COMMAND, COMMAND_NAMES, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, FLOAT64_ARRAY, GAINS, GAINS_COLUMNS,
-    JOINT_STATE, REFERENCE, REFERENCE_COLUMNS, STATE, STATE_NAMES,
+    JOINT_STATE, MISSED, MISSED_COLUMNS, REFERENCE, REFERENCE_COLUMNS, STATE, STATE_NAMES,
 )
 
 
@@ -61,6 +66,8 @@ class RunSeries:
     gains: np.ndarray          # (m, 3) [1/s]
     missing: dict[str, np.ndarray]   # topic (relative name) -> samples of the state without a message
     parameters: bool           # the bag carried the run's parameters
+    missed: np.ndarray | None = None     # samples a realtime plant ran without their command (None: not recorded)
+    failsafe: np.ndarray | None = None   # of those, the samples run with the valve centred
 
     @property
     def e1(self) -> np.ndarray:
@@ -127,8 +134,24 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
     if PARAMETERS_KEY in bag.custom_data:
         x1d = _fill_reference(x1d, cfg, step)
     gt, gk = _gains(bag, cfg)
+    missed, failsafe = _missed(bag, step)
     return RunSeries(Path(bag.path).name or str(bag.path), cfg, np.arange(n) * step, out["y"], out["ydot"],
-                     out["p1"], out["p2"], u, x1d, a1, a2, gt, gk, missing, PARAMETERS_KEY in bag.custom_data)
+                     out["p1"], out["p2"], u, x1d, a1, a2, gt, gk, missing, PARAMETERS_KEY in bag.custom_data,
+                     missed, failsafe)
+
+
+def _missed(bag: Bag, step: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(missed samples, fail-safe samples) from ``…/plant/missed`` if the bag
+    has that topic (a realtime stack's bag: no messages, no misses), else (None, None)."""
+    hits = [t for t, ty in bag.types.items() if (t == "/" + MISSED or t.endswith("/" + MISSED))
+            and ty == FLOAT64_ARRAY]
+    if not hits:
+        return None, None
+    topic = bag.find(MISSED, FLOAT64_ARRAY)
+    if not bag.messages[topic]:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    rows, data = _arrays(bag, topic, MISSED_COLUMNS, step)
+    return rows, rows[data[:, MISSED_COLUMNS.index("failsafe")] > 0.5]
 
 
 def _config(bag: Bag, stamps: np.ndarray, overrides) -> tuple[Config, float]:

@@ -68,6 +68,8 @@ class RunView:
     a_lower: tuple[float, float]
     a_upper: tuple[float, float]
     missed_t: np.ndarray                       # samples [s] with a state but no command recorded
+    late_t: np.ndarray | None = None           # samples [s] a realtime plant ran without their command (recorded)
+    failsafe_t: np.ndarray | None = None       # of those, the samples [s] on the fail-safe (valve centred)
 
     @property
     def e1(self) -> np.ndarray:
@@ -102,9 +104,11 @@ def view_of_series(run: RunSeries, name: str | None = None) -> RunView:
     cfg, ep = run.cfg, run.cfg.episode
     metrics, note = _series_metrics(run)
     missed = run.missing.get("command", np.zeros(0, np.int64))
+    late = None if run.missed is None else run.missed * ep.step
+    failsafe = None if run.failsafe is None else run.failsafe * ep.step
     return RunView(name or run.name, run.t, run.x1d, run.y, run.u, run.p1, run.p2, run.a1_hat, run.a2_hat,
                    run.gains_t, run.gains, _window(cfg), metrics, note, cfg.plant.valve_limit,
-                   cfg.adaptation.lower, cfg.adaptation.upper, missed * ep.step)
+                   cfg.adaptation.lower, cfg.adaptation.upper, missed * ep.step, late, failsafe)
 
 
 def _series_metrics(run: RunSeries) -> tuple[tuple[float, float, float] | None, str]:
@@ -133,8 +137,10 @@ def crop(view: RunView, start: float, end: float) -> RunView:
         raise HasControlError(f"--window {start:g} {end:g}: {view.label} has no sample in it "
                               f"(recorded {view.t[0]:g} .. {view.t[-1]:g} s)")
     cut = {k: getattr(view, k)[keep] for k in ("t", "x1d", "y", "u", "p1", "p2", "a1_hat", "a2_hat")}
-    missed = view.missed_t[(view.missed_t >= start) & (view.missed_t <= end)]
-    return replace(view, **cut, missed_t=missed)
+    for k in ("missed_t", "late_t", "failsafe_t"):
+        x = getattr(view, k)
+        cut[k] = None if x is None else x[(x >= start) & (x <= end)]
+    return replace(view, **cut)
 
 
 @dataclass
@@ -241,15 +247,31 @@ def _valve(ax, views) -> None:
         for sign in (1, -1):
             ax.axhline(sign * lim * MM, color="0.4", ls=":", lw=1.0,
                        label=f"valve limit ±{lim * MM:g} mm" if sign > 0 else None)
-    rug = blended_transform_factory(ax.transData, ax.transAxes)
-    for i, v in enumerate(views):
-        if len(v.missed_t):
-            ax.plot(v.missed_t, np.full(len(v.missed_t), 0.04), "|", ms=9, mew=1.5, color=colour(i),
-                    transform=rug, label=f"no command recorded ({_samples(len(v.missed_t))})")
+    marked = _mark_misses(ax, views)
     _scale_to_window(ax, views, [v.u * MM for v in views], [x * MM for lim in limits for x in (lim, -lim)], "mm")
     ax.set_ylabel(label("valve u", "mm"))
-    if limits or any(len(v.missed_t) for v in views):
+    if limits or marked:
         ax.legend(loc="upper right", fontsize=8)
+
+
+def _mark_misses(ax, views) -> bool:
+    """Ticks along the bottom of the valve panel: the samples a realtime plant
+    ran without their command (as its bag records them) and those on the
+    fail-safe; where the bag does not record them, the samples it holds no command for."""
+    rug = blended_transform_factory(ax.transData, ax.transAxes)
+    marked = False
+    for i, v in enumerate(views):
+        if v.late_t is not None:
+            marks = [(v.late_t, 0.04, "|", f"missed: ran on the held command ({_samples(len(v.late_t))})"),
+                     (v.failsafe_t, 0.10, "v", f"fail-safe: valve centred ({_samples(len(v.failsafe_t))})")]
+        else:
+            marks = [(v.missed_t, 0.04, "|", f"no command recorded ({_samples(len(v.missed_t))})")]
+        for x, y, marker, text in marks:
+            if len(x):
+                ax.plot(x, np.full(len(x), y), marker, ms=9 if marker == "|" else 5, mew=1.5, color=colour(i),
+                        transform=rug, label=text, ls="none")
+                marked = True
+    return marked
 
 
 def _scale_to_window(ax, views, values, also, unit: str) -> None:
