@@ -312,5 +312,8 @@ def test_convergence_legend_says_how_many_seeds_it_averages():
     assert [t.get_text() for t in ax.get_legend().get_texts()] == [
         "pso", "pso-cp (mean of 2 seeds, band: min-max)"]
     np.testing.assert_array_equal(ax.get_lines()[1].get_ydata(), [4.0, 2.0, 1.0])
-    assert ax.get_yscale() == "log" and UNIT.search(ax.get_ylabel())
+    assert ax.get_yscale() == "linear" and UNIT.search(ax.get_ylabel())    # J within a decade
+    matplotlib.pyplot.close(fig)
+    fig = draw_convergence_spread([("pso", [_Result([300.0, 2.0, 1.0])])])
+    assert fig.axes[0].get_yscale() == "log"                                 # over decades
     matplotlib.pyplot.close(fig)

@@ -19,17 +19,28 @@ J_UNIT = "m·s + m²·s"
 
 
 def plot_convergence(runs: Sequence[tuple[str, "object"]], path: str | Path) -> Path:
-    """Best cost J per iteration, one line per labelled SwarmResult (paper Fig. 6), J on a log scale."""
+    """Best cost J per iteration, one line per labelled SwarmResult (paper Fig. 6)."""
     with styled():
         fig, ax = plt.subplots(figsize=(WIDTH, 4.0))
         for label_, result in runs:
-            ax.semilogy([h.best_cost for h in result.history], lw=1.4, label=label_)
+            ax.plot([h.best_cost for h in result.history], lw=1.4, label=label_)
+        _j_scale(ax)
         ax.set_xlabel("iteration")
         ax.set_ylabel(label("best J", J_UNIT))
         ax.set_title("Fig. 6: convergence of the fitness J")
         ax.legend()
         fig.tight_layout()
     return save(fig, path)
+
+
+def _j_scale(ax) -> None:
+    """J on a log scale when it spans a decade or more, else linear (×10ⁿ on the axis)."""
+    y = np.concatenate([np.asarray(ln.get_ydata(), float) for ln in ax.get_lines()] or [np.ones(1)])
+    y = y[np.isfinite(y) & (y > 0)]
+    if y.size and y.max() >= 10 * y.min():
+        ax.set_yscale("log")
+    else:
+        ax.ticklabel_format(axis="y", style="sci", scilimits=(0, 0))
 
 
 def plot_gains(result, path: str | Path, title: str = "") -> Path:
@@ -55,7 +66,7 @@ def plot_gains(result, path: str | Path, title: str = "") -> Path:
 
 def plot_convergence_spread(groups, path: str | Path) -> Path:
     """Best J per iteration, one colour per variant: the one run, or the mean over
-    seeds with the min-max band (paper Fig. 6), J on a log scale."""
+    seeds with the min-max band (paper Fig. 6)."""
     return save(draw_convergence_spread(groups), path)
 
 
@@ -68,9 +79,10 @@ def draw_convergence_spread(groups):
             j = np.array([[h.best_cost for h in r.history[:n]] for r in results])
             seeds = len(results)
             name = label_ if seeds == 1 else f"{label_} (mean of {seeds} seeds, band: min-max)"
-            ax.semilogy(j.mean(0), lw=1.4, color=colour(i), label=name)
+            ax.plot(j.mean(0), lw=1.4, color=colour(i), label=name)
             if seeds > 1:
                 ax.fill_between(range(n), j.min(0), j.max(0), color=colour(i), alpha=0.15, lw=0)
+        _j_scale(ax)
         ax.set_xlabel("iteration")
         ax.set_ylabel(label("best J", J_UNIT))
         ax.set_title("Fig. 6: convergence of J" + (" over seeds" if any(len(r) > 1 for _, r in groups) else ""))
