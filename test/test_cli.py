@@ -35,7 +35,8 @@ def test_trace_and_plot_files(tmp_path):
     r = run("simulate", "--duration", "1.5", "--trace", str(csv), "--plot", str(png))
     assert r.returncode == 0, r.stderr
     lines = csv.read_text().splitlines()
-    assert lines[0].startswith("t,x1d,y,ydot,P1,P2,u,e1") and len(lines) == 1 + 5000
+    assert lines[0] == ("t [s],x1d [m],y [m],ydot [m/s],P1 [Pa],P2 [Pa],u [m],e1 [m],e2 [m/s],e3 [N],"
+                        "a1_hat [N*s/m],a2_hat [m^3/(s*Pa)]") and len(lines) == 1 + 5000
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -26,10 +26,11 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
-    from has_control.bag import read_bag, recorded_run
+    from has_control.bag.series import run_series
     from has_control.core.episode import simulate
     from has_control.nodes.stack import run_tuning_stack
-    from has_control.plots.figures import plot_convergence, plot_gains, plot_tracking
+    from has_control.plots.figures import plot_convergence, plot_gains
+    from has_control.plots.run_figure import gains_text, plot_runs, view_of_series, view_of_trace
     from has_control.tuning.session import SESSION, swarm_result
     from has_control.tuning.tuner import load_tuning
 
@@ -62,15 +63,17 @@ def main(argv=None) -> int:
     manual = simulate(cfg, MANUAL_GAINS.as_tuple())
     row("ABC manual", MANUAL_GAINS.as_tuple(), manual.score.as_json())
     paper = PAPER_TUNED_GAINS.as_tuple()
-    row("ABC, paper's tuned gains", paper, simulate(cfg, paper).score.as_json())
+    paper_run = simulate(cfg, paper)
+    row("ABC, paper's tuned gains", paper, paper_run.score.as_json())
     row("ABC, our PSO+CP+TVAC (from bag)", k, v)
     for label, (a, b, c) in PAPER_ROWS:
         print(f"  {label:<34} {'':8} {'':8} {'':8} {'':>11} {a:11.4e} {b:11.4e} {c:11.4e}")
-    tuned = recorded_run(read_bag(session_dir / SESSION))
+    tuned = run_series(session_dir / SESSION)
     result = swarm_result(session_dir)
-    figs = [plot_tracking([("manual (150, 158, 162)", manual),
-                           (f"tuned ({k[0]:.0f}, {k[1]:.0f}, {k[2]:.0f}), from the bag", tuned)],
-                          out / "tracking.png"),
+    figs = [plot_runs([view_of_trace(manual, cfg, f"manual, {gains_text(MANUAL_GAINS.as_tuple())}"),
+                       view_of_trace(paper_run, cfg, f"paper's tuned, {gains_text(paper)}"),
+                       view_of_series(tuned, f"our tuned, {gains_text(k)} (validation bag)")],
+                      out / "tracking.png", "Manual, the paper's and our tuned gains (SPEC reference run)"),
             plot_convergence([(res["variant"], result)], out / "convergence.png"),
             plot_gains(result, out / "gains.png", f"{res['variant']}, seed {res['seed']}")]
     print()

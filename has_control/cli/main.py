@@ -13,13 +13,13 @@ import sys
 import threading
 from importlib import import_module
 
-from has_control.cli import bag_info, reproduce, replay, robustness, score, simulate, stack, tune
+from has_control.cli import bag_info, plot, reproduce, replay, robustness, score, simulate, stack, tune
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
 from has_control.common.errors import HasControlError
 
 #: The subcommands, in the order ``--help`` lists them.
 COMMANDS = {"simulate": simulate, "tune": tune, "robustness": robustness, "reproduce": reproduce,
-            "stack": stack, "score": score, "bag-info": bag_info, "replay": replay}
+            "stack": stack, "score": score, "bag-info": bag_info, "plot": plot, "replay": replay}
 
 #: Node subcommands: the node's module under has_control.nodes; the rest of the line goes to ROS.
 NODES = {"plant": "plant_node", "controller": "controller_node", "tuner": "tuner_node"}

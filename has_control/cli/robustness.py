@@ -23,7 +23,9 @@ def add_arguments(p) -> None:
     add_config(p, "ros__parameters YAML (repeatable)")
     add_duration(p)
     p.add_argument("--dask", type=dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
-    p.add_argument("--plot", type=figure_path, metavar="FILE.png", help="write J and e_max per scenario as a figure")
+    p.add_argument("--plot", type=figure_path, metavar="FILE.png",
+                   help="write each gain set's J relative to the baseline's, per scenario, as a figure")
+    p.add_argument("--baseline", metavar="NAME", help="with --plot: the --label J is relative to (default: the first)")
     p.add_argument("--markdown", metavar="FILE.md", help="write the table as Markdown")
     add_json(p)
 
@@ -35,13 +37,15 @@ def run(args) -> int:
     if len(labels) > len(gains):
         raise HasControlError(f"--label {labels[len(gains)]}: more labels than --gains")
     labels += [f"k = ({g[0]:g}, {g[1]:g}, {g[2]:g})" for g in gains[len(labels):]]
+    if args.baseline is not None and args.baseline not in labels:
+        raise HasControlError(f"--baseline {args.baseline}: no gain set has that --label ({', '.join(labels)})")
     scenarios = load_scenarios(args.scenarios, cfg)
     with batch(args) as evaluator:
         table = robustness_table(gains, labels, cfg, scenarios, parse_aggregate(args.aggregate), evaluator)
     if args.plot:
         # lazy: matplotlib takes about 1 s to load; only --plot needs it
         from has_control.plots.figures import plot_robustness
-        plot_robustness(table, args.plot)
+        plot_robustness(table, args.plot, args.baseline)
     if args.markdown:
         write_atomic(args.markdown, table.markdown())
     print(json.dumps(table.as_json()) if args.json else table.text())

@@ -7,7 +7,7 @@ import numpy as np
 
 from has_control.cli.args import add_config, add_duration, add_json, figure_path, gains_arg, load
 from has_control.common.files import write_atomic
-from has_control.core.episode import TRACE_COLUMNS, simulate
+from has_control.core.episode import TRACE_COLUMNS, TRACE_UNITS, simulate
 from has_control.core.params import MANUAL_GAINS
 
 HELP = "run one episode with one gain set and print its score"
@@ -24,7 +24,8 @@ def add_arguments(p) -> None:
 
 
 def write_trace_csv(trace, path: str) -> None:
-    write_atomic(path, lambda tmp: np.savetxt(tmp, trace.data, delimiter=",", header=",".join(TRACE_COLUMNS),
+    header = ",".join(f"{c} [{u}]" for c, u in zip(TRACE_COLUMNS, TRACE_UNITS))
+    write_atomic(path, lambda tmp: np.savetxt(tmp, trace.data, delimiter=",", header=header,
                                               comments="", fmt="%.17g"))
 
 
@@ -37,8 +38,8 @@ def run(args) -> int:
         write_trace_csv(trace, args.trace)
     if args.plot:
         # lazy: matplotlib takes about 1 s to load; only --plot needs it
-        from has_control.plots.figures import plot_tracking
-        plot_tracking([(f"k = ({gains[0]:g}, {gains[1]:g}, {gains[2]:g})", trace)], args.plot)
+        from has_control.plots.run_figure import plot_runs, view_of_trace
+        plot_runs([view_of_trace(trace, cfg)], args.plot, "Simulated run (has-control simulate)")
     if args.json:
         print(json.dumps(s.as_json()))
     else:

@@ -5,12 +5,13 @@ import json
 import sys
 from pathlib import Path
 
-from has_control.cli.args import (add_config, add_duration, add_json, batch, dask_spec, load, positive_int)
+from has_control.cli.args import add_config, add_duration, add_json, batch, dask_spec, load, positive_int
 from has_control.cli.status import Progress
 from has_control.common.errors import HasControlError
 from has_control.config import load_scenarios
 from has_control.core.scenarios import parse_aggregate
-from has_control.tuning.session import run_session
+from has_control.bag.series import run_series
+from has_control.tuning.session import SESSION, run_session
 from has_control.tuning.swarm import VARIANTS
 from has_control.tuning.tuner import load_tuning
 
@@ -26,7 +27,7 @@ def add_arguments(p) -> None:
     add_duration(p)
     p.add_argument("--out", metavar="DIR",
                    help="write the session bag DIR/session (resumable), tune.json, gains.yaml (--params-file), "
-                        "convergence.png, gains.png")
+                        "convergence.png, gains.png, tracking.png (the validation run)")
     p.add_argument("--resume", metavar="DIR",
                    help="continue the session in DIR from its last complete iteration (its settings apply)")
     p.add_argument("--scenarios", metavar="FILE",
@@ -63,8 +64,11 @@ def robust(args, cfg, tuning):
 def _figures(res, directory: Path) -> None:
     # lazy: matplotlib takes about 1 s to load; only a session with --out draws
     from has_control.plots.figures import plot_convergence, plot_gains
+    from has_control.plots.run_figure import gains_text, plot_runs, view_of_series
     plot_convergence([(res.variant, res.result)], directory / "convergence.png")
-    plot_gains(res.result, directory / "gains.png", f"{res.variant}, seed {res.seed}")
+    plot_gains(res.result, directory / "gains.png", f"Figs. 3-5: {res.variant}, seed {res.seed}")
+    plot_runs([view_of_series(run_series(directory / SESSION), f"tuned, {gains_text(res.gains)}")],
+              directory / "tracking.png", f"{res.variant}, seed {res.seed}: the validation run (session bag)")
 
 
 def run(args) -> int:
@@ -97,5 +101,5 @@ def run(args) -> int:
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
         if session.directory:
             print(f"wrote {session.directory / 'tune.json'}, gains.yaml (a --params-file for the controller), "
-                  f"convergence.png, gains.png and the session bag {session.bag}")
+                  f"convergence.png, gains.png, tracking.png and the session bag {session.bag}")
     return 0

@@ -55,6 +55,8 @@ class Col(IntEnum):
 
 
 TRACE_COLUMNS = tuple(c.name for c in Col)
+#: The unit of each column, in ASCII (a CSV header's: ``simulate --trace``).
+TRACE_UNITS = ("s", "m", "m", "m/s", "Pa", "Pa", "m", "m", "m/s", "N", "N*s/m", "m^3/(s*Pa)")
 _NCOL = len(TRACE_COLUMNS)
 
 #: Lanes of one block of the batch kernel: a compile-time constant, so the
@@ -395,4 +397,4 @@ def _as_gains(g) -> Gains:
     return Gains(k1, k2, k3)
 
 
-__all__ = ["Col", "TRACE_COLUMNS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs"]
+__all__ = ["Col", "TRACE_COLUMNS", "TRACE_UNITS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs"]

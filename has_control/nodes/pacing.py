@@ -61,6 +61,8 @@ class LoopStats:
     wall_ns: int = 0                 # wall time over the same span
     late_max_ns: int = 0
     missed_at: list[int] = field(default_factory=list)   # the first MISSES_KEPT missed samples
+    missed_spans: list[list[int]] = field(default_factory=list)     # every missed sample, as [first, last] runs
+    failsafe_spans: list[list[int]] = field(default_factory=list)   # every fail-safe sample, as [first, last] runs
     late_us: np.ndarray = field(default_factory=lambda: np.zeros(LATE_BINS_US + 1, dtype=np.int64))
 
     def late_percentile(self, q: float) -> float:
@@ -77,6 +79,14 @@ class LoopStats:
                 "missed_samples": float(self.missed), "failsafe_samples": float(self.failsafe),
                 "overruns": float(self.overruns), "late_p50_us": self.late_percentile(50),
                 "late_p99_us": self.late_percentile(99), "late_max_us": self.late_max_ns / 1e3}
+
+
+def _extend(spans: list[list[int]], i: int) -> None:
+    """Add sample ``i`` to [first, last] runs (a run of misses is one entry, whatever its length)."""
+    if spans and spans[-1][1] == i - 1:
+        spans[-1][1] = i
+    else:
+        spans.append([i, i])
 
 
 def set_realtime_priority(priority: int) -> tuple[int, int] | None:
@@ -161,9 +171,11 @@ def run_paced(executor, plant, *, priority: int = 0,
                 if stats.missed < MISSES_KEPT:
                     stats.missed_at.append(i)
                 stats.missed += 1
+                _extend(stats.missed_spans, i)
                 in_a_row += 1
                 if in_a_row > failsafe_after:
                     stats.failsafe += 1
+                    _extend(stats.failsafe_spans, i)
                     plant.failsafe(in_a_row)
                     u = 0.0
                 else:

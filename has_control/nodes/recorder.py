@@ -163,6 +163,20 @@ class Recorder:
             self.done.clear()
         return w
 
+    def add(self, relative: str, msgtype: str, messages: list[bytes]) -> None:
+        """A topic the nodes do not publish to the recorder (e.g. what a realtime
+        loop reports after its run), declared even with no messages, into the open bag."""
+        if self.writer is None:
+            return
+        topic = self.prefix + topic_name(self.namespace, relative)
+        self.writer.add_topic(topic, msgtype, OFFERED.get(relative, QosSpec(depth=10)))
+        if not messages:
+            return
+        if isinstance(self.writer, BagProcess):
+            self.writer.write_messages({topic: (msgtype, messages)})
+        else:
+            self._writes.append(self._pool.submit(self.writer.write_batches, {topic: as_batch(msgtype, messages)}))
+
     def count(self, relative: str) -> int:
         """Messages of ``relative`` taken since :meth:`open`."""
         t = topic_name(self.namespace, relative)

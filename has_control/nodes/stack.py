@@ -23,6 +23,9 @@ from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.runtime import borrowed_context, tee
 from has_control.nodes.plant_node import PlantNode
+from has_control.wire import cdr
+from has_control.wire.codec import column_label
+from has_control.wire.topics import FLOAT64_ARRAY, MISSED, MISSED_COLUMNS
 
 
 @dataclass
@@ -130,6 +133,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                             progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))
                     stats = plant.run_realtime(executor, on_second=each_second)
                     paced, missed_at = stats.as_dict(), stats.missed_at
+                    if recorder is not None:
+                        recorder.add(MISSED, FLOAT64_ARRAY, missed_messages(stats, plant.log, cfg.episode.step))
                 else:
                     paced, missed_at = None, []
                     _spin_lockstep(executor, plant, n, timeout, progress, stop_if_conflicts)
@@ -212,6 +217,21 @@ def _stop_on_signals(plant, interrupted: list | None) -> None:
 
 
 _previous: dict = {}
+
+
+def missed_messages(stats, log: list[tuple], step: float) -> list[bytes]:
+    """The paced loop's missed samples as ``plant/missed`` messages (see
+    :data:`~has_control.wire.topics.MISSED_COLUMNS`): t [s], the command the
+    plant ran with [m] (from its ``log``), 1.0 on the fail-safe."""
+    def samples(spans) -> np.ndarray:
+        return np.concatenate([np.arange(a, b + 1) for a, b in spans]) if spans else np.zeros(0, np.int64)
+    missed = samples(stats.missed_spans)
+    if not missed.size:
+        return []
+    ran = {int(row[0]): float(row[5]) for row in log}                # sample -> u it ran with
+    rows = np.column_stack([missed * step, [ran.get(int(i), np.nan) for i in missed],
+                            np.isin(missed, samples(stats.failsafe_spans)).astype(float)])
+    return cdr.encode_float64_arrays(rows, column_label(MISSED_COLUMNS))
 
 
 def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndarray:

@@ -70,7 +70,8 @@ def run_experiment(seeds: int, tuning: Tuning | None = None, cfg: Config | None 
 def write_report(rows: list[Row], out: Path, cfg: Config | None = None,
                  upper: tuple[float, float, float] = Tuning().upper) -> Path:
     from has_control.common.files import write_atomic
-    from has_control.plots.figures import plot_convergence_spread, plot_gains, plot_tracking
+    from has_control.plots.figures import plot_convergence_spread, plot_gains
+    from has_control.plots.run_figure import gains_text, plot_runs, view_of_trace
     cfg = cfg or Config()
     seeds = len(rows[0].runs)
     best = {r.label: r.best() for r in rows}
@@ -125,9 +126,12 @@ def write_report(rows: list[Row], out: Path, cfg: Config | None = None,
     for r in main_rows:
         b = best[r.label]
         figs.append(plot_gains(b.result, out / f"fig3-5_gains_{r.label}.png",
-                               f"{r.label}, seed {b.seed}: gains over iterations (paper Figs. 3-5)"))
-    figs.append(plot_tracking([("manual (150, 158, 162)", traces["manual"]),
-                               (f"PSO+CP+TVAC {_k(tuned, 0)}", traces["ours"])], out / "fig7-8_tracking.png"))
+                               f"Figs. 3-5: {r.label}, seed {b.seed}: gains over iterations"))
+    figs.append(plot_runs([view_of_trace(traces["manual"], cfg, f"manual, {gains_text(MANUAL_GAINS.as_tuple())}"),
+                           view_of_trace(traces["paper_gains"], cfg,
+                                         f"paper's tuned, {gains_text(PAPER_TUNED_GAINS.as_tuple())}"),
+                           view_of_trace(traces["ours"], cfg, f"PSO+CP+TVAC (ours), {gains_text(tuned)}")],
+                          out / "fig7-8_tracking.png", "Figs. 7-8: displacement tracking and tracking error"))
     lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figs]
     lines += ["", "## Where we agree with the paper, and where not", "",
               _verdict(rows, traces, upper)]

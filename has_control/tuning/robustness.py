@@ -28,6 +28,7 @@ class RobustnessTable:
     labels: tuple[str, ...]
     gains: tuple[tuple[float, float, float], ...]
     scores: ScenarioScores
+    kinds: tuple[str, ...] = ()          # each scenario's kind (:func:`scenario_kind`), for the figure
 
     def summary(self) -> dict[str, dict[str, float]]:
         """Per label: mean, the tail aggregate, max J, and the scenarios diverged."""
@@ -78,6 +79,20 @@ def _num(v: float) -> str:
     return "inf" if math.isinf(v) else f"{v:.4e}"
 
 
+def scenario_kind(scenario) -> str:
+    """What a scenario changes, for grouping: ``road`` (it sets the reference),
+    else ``drift`` (the plant; its sensors may be noisy too), else ``noise``,
+    else ``nominal``; ``other`` if it does not say (no ``overrides``)."""
+    overrides = getattr(scenario, "overrides", None)
+    if overrides is None:
+        return "other"
+    keys = [str(k) for k, _ in overrides]
+    for kind, prefix in (("road", "reference."), ("drift", "plant."), ("noise", "noise.")):
+        if any(k.startswith(prefix) for k in keys):
+            return kind
+    return "nominal"
+
+
 def robustness_table(gains: Sequence[Sequence[float]], labels: Sequence[str], cfg: Config,
                      scenarios: Sequence[Scenario], aggregate: Aggregate,
                      batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> RobustnessTable:
@@ -89,4 +104,5 @@ def robustness_table(gains: Sequence[Sequence[float]], labels: Sequence[str], cf
         raise ConfigError(f"label {dup!r}: names two gain sets; give each --gains a --label of its own")
     g = np.array([[float(v) for v in k] for k in gains])
     scores = evaluate_scenarios(g, cfg, scenarios, aggregate, batch or evaluate_configs)
-    return RobustnessTable(tuple(labels), tuple(tuple(map(float, k)) for k in g), scores)
+    return RobustnessTable(tuple(labels), tuple(tuple(map(float, k)) for k in g), scores,
+                           tuple(scenario_kind(s) for s in scenarios))

@@ -30,6 +30,8 @@ STRING = "std_msgs/msg/String"
 
 STATE, COMMAND, CLOCK_TOPIC = "state", "command", "clock"
 REFERENCE, CONTROLLER_STATE, GAINS = "controller/reference", "controller/controller_state", "controller/gains"
+#: A realtime run's samples that ran without their command (recorded by ``stack --realtime --record``).
+MISSED = "plant/missed"
 
 STATE_NAMES = ["actuator", "chamber_1", "chamber_2"]
 COMMAND_NAMES = ["valve"]
@@ -38,6 +40,9 @@ COMMAND_NAMES = ["valve"]
 CONTROLLER_STATE_COLUMNS = ("t", "e1", "e2", "e3", "a1_hat", "a2_hat", "x1d")
 REFERENCE_COLUMNS = ("t", "x1d", "x1d_dot", "x1d_ddot", "x1d_dddot")
 GAINS_COLUMNS = ("t", "k1", "k2", "k3")
+#: One message per missed sample: its t [s], the command the plant ran with [m]
+#: (the last one held, or 0 on the fail-safe), and 1.0 if on the fail-safe, else 0.0.
+MISSED_COLUMNS = ("t", "u", "failsafe")
 
 #: What each run topic is offered with: (history depth, transient local). All
 #: are reliable. The loop's state and command keep the last one (lock-step

@@ -1,0 +1,247 @@
+"""Every recorded signal of a run, on its sample grid, gaps allowed: what a figure of a bag shows.
+
+:func:`~has_control.bag.score.recorded_run` refuses a run that is not one
+state and one command per sample (its J would not be the run's);
+a figure shows whatever was recorded. :func:`run_series` puts each
+message on sample i = round(stamp / Δt) and leaves NaN where a topic has no
+message for a sample: a realtime run whose controller did not answer every
+state, a recording cut short, a bag from another recorder. Only the state
+topic is required. The signals, all SI:
+
+* state (``…/state``, JointState by joint name): y [m], ẏ [m/s], P1, P2 [Pa];
+* command (``…/command``): u [m], the valve command the controller sent;
+* reference (``…/controller/reference``; else the x1d of controller_state): x1d [m]; where
+  the controller published none and the bag holds the run's parameters, the
+  reference they define (so e1 is whole wherever the state is);
+* controller_state: â1 [N·s/m], â2 [m³/(s·Pa)];
+* gains (``…/controller/gains``): (t [s], k1, k2, k3 [1/s]) each time they changed;
+* missed samples (``…/plant/missed``, a realtime stack's bag): the samples the
+  plant ran without their command (held), and those on the fail-safe (valve
+  centred). A bag without this topic does not say; a sample whose command is
+  absent from the bag was surely missed (``missing['command']``), one whose
+  command came late cannot be told.
+
+A bag without the run's parameters (``rosbags-convert`` drops ``custom_data``)
+is read with the shipped configuration, Δt taken from the state stamps and
+the horizon from the recording, with a warning.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from has_control.bag.base import PARAMETERS_KEY, BagError, warn
+from has_control.bag.read import Bag, read_bag
+from has_control.common.errors import HasControlError
+from has_control.config import build_config
+from has_control.core.params import Config
+from has_control.core.reference import reference, reference_array
+from has_control.wire import cdr
+from has_control.wire.topics import (
+    COMMAND, COMMAND_NAMES, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, FLOAT64_ARRAY, GAINS, GAINS_COLUMNS,
+    JOINT_STATE, MISSED, MISSED_COLUMNS, REFERENCE, REFERENCE_COLUMNS, STATE, STATE_NAMES,
+)
+
+
+@dataclass
+class RunSeries:
+    """One recorded run on its sample grid (row i: t = i·Δt); NaN where nothing was recorded."""
+
+    name: str
+    cfg: Config
+    t: np.ndarray              # [s]
+    y: np.ndarray              # [m]
+    ydot: np.ndarray           # [m/s]
+    p1: np.ndarray             # [Pa]
+    p2: np.ndarray             # [Pa]
+    u: np.ndarray              # [m]
+    x1d: np.ndarray            # [m]
+    a1_hat: np.ndarray         # [N·s/m]
+    a2_hat: np.ndarray         # [m³/(s·Pa)]
+    gains_t: np.ndarray        # [s], when each gain set took effect
+    gains: np.ndarray          # (m, 3) [1/s]
+    missing: dict[str, np.ndarray]   # topic (relative name) -> samples of the state without a message
+    parameters: bool           # the bag carried the run's parameters
+    missed: np.ndarray | None = None     # samples a realtime plant ran without their command (None: not recorded)
+    failsafe: np.ndarray | None = None   # of those, the samples run with the valve centred
+
+    @property
+    def e1(self) -> np.ndarray:
+        """e1 = x1d − y [m] (SPEC §3)."""
+        return self.x1d - self.y
+
+    @property
+    def complete(self) -> bool:
+        """Every sample of the run has a state, command and reference, and the run is as long as its config."""
+        return (len(self.t) >= self.cfg.episode.samples and not any(len(v) for v in self.missing.values()))
+
+
+def run_series(path: str | Path, overrides: Iterable[str | Path] = (),
+               on_warning: Callable[[str], None] = warn) -> RunSeries:
+    """The run recorded in the bag at ``path`` (see the module docstring)."""
+    bag = read_bag(path, topics=None, on_warning=on_warning)
+    return series_of(bag, overrides)
+
+
+def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
+    """The run recorded in ``bag`` (already read)."""
+    st = bag.find(STATE, JOINT_STATE)
+    states = bag.messages[st]
+    if not states:
+        raise BagError(f"{bag.path}: no messages on {st}")
+    stamps = cdr.stamps_ns([d for _, d in states])
+    names, pos, vel, eff = cdr.joint_states([d for _, d in states], f"{bag.path}: {st}")
+    cfg, step = _config(bag, stamps, overrides)
+    idx = _samples(stamps, step, f"{bag.path}: {st}")
+    n = int(idx.max()) + 1
+    col = _joint_columns(names, STATE_NAMES, f"{bag.path}: {st}")
+    out = {k: _on_grid(n, idx, v) for k, v in (
+        ("y", pos[:, col[0]]), ("ydot", vel[:, col[0]]), ("p1", eff[:, col[1]]), ("p2", eff[:, col[2]]))}
+    have = np.zeros(n, bool)
+    have[idx] = True
+    missing: dict[str, np.ndarray] = {}
+
+    def gaps(relative: str, rows: np.ndarray) -> None:
+        got = np.zeros(n, bool)
+        got[rows[rows < n]] = True
+        missing[relative] = np.flatnonzero(have & ~got)
+
+    u = np.full(n, math.nan)
+    cm = _optional(bag, COMMAND, JOINT_STATE)
+    if cm:
+        cnames, cpos, _, _ = cdr.joint_states([d for _, d in bag.messages[cm]], f"{bag.path}: {cm}")
+        rows = _samples(cdr.stamps_ns([d for _, d in bag.messages[cm]]), step, f"{bag.path}: {cm}")
+        u = _on_grid(n, rows, cpos[:, _joint_columns(cnames, COMMAND_NAMES, f"{bag.path}: {cm}")[0]])
+        gaps(COMMAND, rows)
+    x1d = a1 = a2 = np.full(n, math.nan)
+    cs = _optional(bag, CONTROLLER_STATE, FLOAT64_ARRAY)
+    if cs:
+        rows, data = _arrays(bag, cs, CONTROLLER_STATE_COLUMNS, step)
+        c = CONTROLLER_STATE_COLUMNS.index
+        a1, a2, x1d = (_on_grid(n, rows, data[:, c(k)]) for k in ("a1_hat", "a2_hat", "x1d"))
+    rf = _optional(bag, REFERENCE, FLOAT64_ARRAY)
+    if rf:
+        rows, data = _arrays(bag, rf, REFERENCE_COLUMNS, step)
+        x1d = _on_grid(n, rows, data[:, REFERENCE_COLUMNS.index("x1d")])
+        gaps(REFERENCE, rows)
+    elif not cs:
+        raise BagError(f"{bag.path}: no '…/{REFERENCE}' nor '…/{CONTROLLER_STATE}' ({FLOAT64_ARRAY}): "
+                       "no reference to plot the error against")
+    if PARAMETERS_KEY in bag.custom_data:
+        x1d = _fill_reference(x1d, cfg, step)
+    gt, gk = _gains(bag, cfg)
+    missed, failsafe = _missed(bag, step)
+    return RunSeries(Path(bag.path).name or str(bag.path), cfg, np.arange(n) * step, out["y"], out["ydot"],
+                     out["p1"], out["p2"], u, x1d, a1, a2, gt, gk, missing, PARAMETERS_KEY in bag.custom_data,
+                     missed, failsafe)
+
+
+def _missed(bag: Bag, step: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(missed samples, fail-safe samples) from ``…/plant/missed`` if the bag
+    has that topic (a realtime stack's bag: no messages, no misses), else (None, None)."""
+    hits = [t for t, ty in bag.types.items() if (t == "/" + MISSED or t.endswith("/" + MISSED))
+            and ty == FLOAT64_ARRAY]
+    if not hits:
+        return None, None
+    topic = bag.find(MISSED, FLOAT64_ARRAY)
+    if not bag.messages[topic]:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    rows, data = _arrays(bag, topic, MISSED_COLUMNS, step)
+    return rows, rows[data[:, MISSED_COLUMNS.index("failsafe")] > 0.5]
+
+
+def _config(bag: Bag, stamps: np.ndarray, overrides) -> tuple[Config, float]:
+    """The run's Config and Δt [s]. Without stored parameters: the shipped
+    configuration with Δt from the stamps and the horizon of the recording."""
+    cfg = bag.config(overrides)
+    if PARAMETERS_KEY in bag.custom_data:
+        return cfg, cfg.episode.step
+    d = np.diff(np.unique(stamps))
+    step = float(np.median(d)) / 1e9 if d.size else cfg.episode.step
+    horizon = (int(round((stamps.max() - stamps.min()) / 1e9 / step)) + 1) * step
+    try:
+        cfg = build_config({"simulation.step": step, "simulation.horizon": horizon},
+                           source=f"{bag.path} (Δt and horizon from the recording)", base=cfg)
+    except HasControlError:                     # too short for the metric window: keep Δt only
+        cfg = build_config({"simulation.step": step}, source=f"{bag.path} (Δt from the recording)", base=cfg)
+    return cfg, step
+
+
+def _fill_reference(x1d: np.ndarray, cfg: Config, step: float) -> np.ndarray:
+    """x1d where the controller published none (it did not answer that state):
+    the run's reference, a function of its stored parameters, as the realtime
+    stack scores it; so e1 = x1d − y is whole wherever the state is."""
+    gaps = np.flatnonzero(np.isnan(x1d))
+    if not gaps.size:
+        return x1d
+    rp = reference_array(cfg.reference, cfg.episode)
+    out = x1d.copy()
+    out[gaps] = [reference(rp, i * step)[0] for i in gaps]
+    return out
+
+
+def _samples(stamps_ns: np.ndarray, step: float, what: str) -> np.ndarray:
+    """Sample index of each stamp; refused if off the grid or negative."""
+    x = stamps_ns / (step * 1e9)
+    idx = np.rint(x).astype(np.int64)
+    off = np.abs(x - idx) > 1e-3
+    if off.any() or (idx < 0).any():
+        k = int(np.argmax(off | (idx < 0)))
+        raise BagError(f"{what}: message {k} is stamped {stamps_ns[k] / 1e9:.9f} s, "
+                       f"not on the sample grid of {step * 1e3:g} ms")
+    if len(idx) and idx.max() > 100 * len(idx) + 1_000_000:
+        raise BagError(f"{what}: stamps up to sample {idx.max()} for {len(idx)} messages: not one run")
+    return idx
+
+
+def _on_grid(n: int, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values`` at samples ``idx`` of an n-sample grid (the last message of a sample wins), NaN elsewhere."""
+    out = np.full(n, math.nan)
+    keep = idx < n
+    out[idx[keep]] = values[keep]
+    return out
+
+
+def _optional(bag: Bag, relative: str, msgtype: str) -> str | None:
+    """The topic ``relative`` of ``msgtype`` if the bag has it with messages (two such: refused)."""
+    hits = [t for t, ty in bag.types.items()
+            if (t == "/" + relative or t.endswith("/" + relative)) and ty == msgtype]
+    if len(hits) > 1:
+        bag.find(relative, msgtype)             # raises, naming the topics
+    return hits[0] if hits and bag.messages[hits[0]] else None
+
+
+def _arrays(bag: Bag, topic: str, columns: tuple[str, ...], step: float) -> tuple[np.ndarray, np.ndarray]:
+    """(sample of each message, its data) of a Float64MultiArray topic whose rows lead with t [s]."""
+    data = cdr.float64_arrays([d for _, d in bag.messages[topic]], f"{bag.path}: {topic}")
+    if data.shape[1] != len(columns):
+        raise BagError(f"{bag.path}: {topic}: {data.shape[1]} columns, expected {len(columns)} "
+                       f"({', '.join(columns)})")
+    return _samples(np.rint(data[:, 0] * 1e9), step, f"{bag.path}: {topic}"), data
+
+
+def _gains(bag: Bag, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+    """When each gain set took effect [s] and the sets (m, 3) [1/s]: the gains
+    topic, else the stored parameters' gains from t = 0, else none."""
+    g = _optional(bag, GAINS, FLOAT64_ARRAY)
+    if g:
+        data = cdr.float64_arrays([d for _, d in bag.messages[g]], f"{bag.path}: {g}")
+        if data.shape[1] != len(GAINS_COLUMNS):
+            raise BagError(f"{bag.path}: {g}: {data.shape[1]} columns, expected {len(GAINS_COLUMNS)}")
+        order = np.argsort(data[:, 0], kind="stable")
+        return data[order, 0], data[order, 1:4]
+    if PARAMETERS_KEY in bag.custom_data:
+        return np.zeros(1), np.array([cfg.gains.as_tuple()])
+    return np.zeros(0), np.zeros((0, 3))
+
+
+def _joint_columns(names: list[str], wanted: list[str], what: str) -> list[int]:
+    """Column of each wanted joint, by name (a bag from elsewhere may order them otherwise)."""
+    missing = [w for w in wanted if w not in names]
+    if missing:
+        raise BagError(f"{what}: no joint {', '.join(missing)} (joints: {', '.join(names) or 'none'})")
+    return [names.index(w) for w in wanted]
