@@ -21,6 +21,7 @@ from rclpy.parameter import Parameter
 from has_control.core.cost import Score, score_arrays
 from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
+from has_control.nodes.managed import bring_up
 from has_control.nodes.runtime import borrowed_context, tee
 from has_control.nodes.plant_node import PlantNode
 
@@ -81,6 +82,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     """
     from has_control.config import build_config
     cfg = cfg or Config()
+    namespace = normalise_namespace(namespace)
     if gains is not None:
         cfg = build_config({"gains.k1": float(gains[0]), "gains.k2": float(gains[1]),
                             "gains.k3": float(gains[2])}, source="--gains", base=cfg)
@@ -97,14 +99,17 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 recorder = Recorder(namespace=namespace, subscribe=False, process=True)
                 recorder.open(record, cfg)
             tap = tee(recorder and recorder.sink, live and live.sink)
+            managed = Parameter("autostart", value=False)           # the transitions are driven here
             plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
                 params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
-                           Parameter("mode", value="realtime" if realtime else "lockstep")])
+                           Parameter("mode", value="realtime" if realtime else "lockstep"), managed])
             nodes.append(plant)
             internals = publish_internals or record is not None
             controller = ControllerNode(namespace=namespace, context=context, tap=tap, parameter_overrides=params + [
-                Parameter("publish_internals", value=internals)])
+                Parameter("publish_internals", value=internals), managed])
             nodes.append(controller)
+            for node in (plant, controller):     # unconfigured -> inactive -> active
+                _bring_up(node)
             controller.record_trace(n)
             if realtime:
                 plant.log = []                 # the command each sample ran with (held ones included)
@@ -166,6 +171,22 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         return run
+
+
+def normalise_namespace(namespace: str | None) -> str:
+    """A namespace as ROS resolves it: ``sim0`` → ``/sim0``; '' or '/' → '' (the root)."""
+    namespace = (namespace or "").strip("/")
+    return f"/{namespace}" if namespace else ""
+
+
+def _bring_up(node) -> None:
+    """Configure and activate ``node``; a refusal is one line naming it."""
+    from has_control.common.errors import HasControlError
+    node.quiet = True                            # the stack's own lines say what runs
+    try:
+        bring_up(node)
+    except ValueError as exc:
+        raise HasControlError(f"{node.get_fully_qualified_name()}: {exc}") from None
 
 
 def _live_view(port: int | None):
@@ -281,7 +302,7 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
     from has_control.tuning.tuner import tuning_parameters
     from has_control.nodes.tuner_node import TunerNode
     tuning = load_tuning(config_files).replace(**changes)
-    namespaces = namespaces or [""]
+    namespaces = [normalise_namespace(ns) for ns in namespaces or [""]]
     with borrowed_context(context, domain_id=domain_id) as context:
         model = _overrides(cfg)
         nodes = []

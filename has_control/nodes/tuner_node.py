@@ -42,6 +42,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -72,7 +74,8 @@ class Lane:
     """One plant/controller pair in ``namespace``, driven through services."""
 
     def __init__(self, node: "TunerNode", namespace: str, controller: str, plant: str, y_limit: float):
-        ns = namespace.rstrip("/")
+        ns = namespace.strip("/")
+        ns = f"/{ns}" if ns else ""                # sim0 is /sim0, as ROS resolves it
         self.namespace = ns or "/"
         self.controller_name, self.plant_name = f"{ns}/{controller}", f"{ns}/{plant}"
         self.controller_params = AsyncParameterClient(node, self.controller_name)
@@ -82,6 +85,29 @@ class Lane:
         self.plant_start = node.create_client(Trigger, f"{self.plant_name}/start")
         self.recorder = Recorder(node, ns, y_limit=y_limit)
         self.logger = node.get_logger()
+        self.lifecycle = {name: (node.create_client(GetState, f"{name}/get_state"),
+                                 node.create_client(ChangeState, f"{name}/change_state"))
+                          for name in (self.plant_name, self.controller_name)}
+        self.up: set[str] = set()
+
+    def bring_up(self) -> None:
+        """Configure and activate the lane's managed nodes that are not active yet
+        (a plant or controller started with ``autostart: false``)."""
+        for name, (get, change) in self.lifecycle.items():
+            if name in self.up or not get.service_is_ready():
+                continue
+            label = _wait(get.call_async(GetState.Request()), 10.0, get.srv_name).current_state.label
+            for before, transition in (("unconfigured", Transition.TRANSITION_CONFIGURE),
+                                       ("inactive", Transition.TRANSITION_ACTIVATE)):
+                if label == before:
+                    request = ChangeState.Request()
+                    request.transition.id = transition
+                    if not _wait(change.call_async(request), 60.0, change.srv_name).success:
+                        raise HasControlError(f"{name}: refused the transition from {before} (see its log)")
+                    self.logger.info(f"{name}: {before} -> {'inactive' if before == 'unconfigured' else 'active'}")
+                    label = "inactive" if before == "unconfigured" else "active"
+            if label == "active":
+                self.up.add(name)
 
     def ready(self) -> bool:
         return (self.controller_params.services_are_ready() and self.plant_params.services_are_ready()
@@ -216,6 +242,8 @@ class TunerNode(Node):
     def wait_for_lanes(self, timeout: float = 30.0) -> None:
         end = time.monotonic() + timeout
         while not all(lane.ready() for lane in self.lanes):
+            for lane in self.lanes:
+                lane.bring_up()
             if time.monotonic() > end:
                 missing = [lane.namespace for lane in self.lanes if not lane.ready()]
                 raise HasControlError(f"lanes {missing}: plant, controller (and their services) not found "

@@ -57,6 +57,8 @@ CLOCK_LAYOUT = codec.clock_layout()
 CONTROLLER_STATE_LAYOUT = codec.float64_array_layout(CONTROLLER_STATE_COLUMNS)
 REFERENCE_LAYOUT = codec.float64_array_layout(REFERENCE_COLUMNS)
 GAINS_LAYOUT = codec.float64_array_layout(GAINS_COLUMNS)
+#: ros2_control: the valve command ``[u]`` [m] a forward_command_controller takes.
+FORWARD_COMMAND_LAYOUT = codec.float64_array_layout(tuple(COMMAND_NAMES))
 
 #: The layout of each run topic (by relative name).
 LAYOUTS = {STATE: STATE_LAYOUT, COMMAND: COMMAND_LAYOUT, CLOCK_TOPIC: CLOCK_LAYOUT,
