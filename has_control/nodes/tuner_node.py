@@ -27,8 +27,10 @@ session bag ``record/session``, the best gains as a ``--params-file``
 ``record/episodes``; empty: episodes go to a temporary
 directory), ``resume`` (a directory of an interrupted session),
 ``episode_timeout`` [s of wall time], ``log_every`` (log every n-th iteration).
-Topic ``~/progress`` (std_msgs/Float64MultiArray): [iteration, best J,
-k1, k2, k3, evaluations, elapsed s], once per iteration.
+Topic ``~/progress`` (std_msgs/Float64MultiArray, its dimension labelled
+with the columns of :data:`has_control.wire.topics.PROGRESS_COLUMNS`):
+[iteration, best J, k1, k2, k3 [1/s], evaluations, elapsed [s], ETA [s]],
+once per iteration.
 """
 from __future__ import annotations
 
@@ -49,6 +51,7 @@ from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
+from rcl_interfaces.msg import ParameterDescriptor
 
 from has_control.bag import BagError, score_bag
 from has_control.common.errors import ConfigError, HasControlError
@@ -56,9 +59,45 @@ from has_control.tuning.swarm import Swarm
 from has_control.tuning.tuner import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 from has_control.nodes.recorder import Recorder
+from has_control.wire.topics import PROGRESS_LAYOUT
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.", "plant.", "noise.")
 EVALUATORS = ("graph", "batch")
+#: What each swarm.* parameter means (config/tuner.yaml; SPEC §7).
+SWARM_PARAMETERS = {
+    "swarm.variant": "pso | pso-cp | pso-cp-tvac (SPEC §7)",
+    "swarm.seed": "seed of every random draw of the swarm",
+    "swarm.particles": "N, particles per iteration",
+    "swarm.iterations": "MAXITER, iterations",
+    "swarm.target": "stop when the best J <= target",
+    "swarm.lower": "x_min of (k1, k2, k3) [1/s]",
+    "swarm.upper": "x_max of (k1, k2, k3) [1/s]",
+    "swarm.velocity_limit": "v_max of a particle per iteration (v_min = -v_max) [1/s]",
+    "swarm.inertia_max": "omega_max, inertia weight at the first iteration",
+    "swarm.inertia_min": "omega_min, inertia weight at the last iteration",
+    "swarm.c1": "cognitive acceleration c1 (PSO, PSO+CP)",
+    "swarm.c2": "social acceleration c2 (PSO, PSO+CP)",
+    "swarm.c1_start": "TVAC: c1 at the first iteration",
+    "swarm.c1_end": "TVAC: c1 at the last iteration",
+    "swarm.c2_start": "TVAC: c2 at the first iteration",
+    "swarm.c2_end": "TVAC: c2 at the last iteration",
+    "swarm.crazy_redraw": "positive: U(0, v_max) (paper Eq. 37) | symmetric: U(-v_max, v_max)",
+    "swarm.crazy_probability": "exp-difference: w_min*exp(w - w_max) (SPEC) | exp-ratio: w_min*exp(-w/w_max)",
+}
+#: The tuner's own parameters: (name, default, meaning and unit).
+OWN_PARAMETERS = (
+    ("scenarios", "", "robust tuning: a scenario file scored by the batch evaluator (empty: the nominal episode)"),
+    ("aggregate", "mean", "robust tuning: mean | max | cvar:alpha of the scenarios' J"),
+    ("evaluator", "batch", "batch (in-process, fast) | graph (every candidate through the lanes' nodes)"),
+    ("validate_best", True, "re-run the best gains through the graph, recorded and scored from the bag"),
+    ("lanes", [""], "namespaces of the plant/controller pairs ('' is the root)"),
+    ("controller", "controller", "the controller's node name within a lane"),
+    ("plant", "plant", "the plant's node name within a lane"),
+    ("record", "", "a directory: the session bag, gains.yaml and (graph) one bag per episode; empty: none kept"),
+    ("resume", "", "a directory of an interrupted session to resume"),
+    ("episode_timeout", 120.0, "graph: an episode not finished after this long scores +inf [s of wall time]"),
+    ("log_every", 1, "log every n-th iteration"),
+)
 
 
 def _wait(future, timeout: float, what: str):
@@ -174,18 +213,9 @@ class TunerNode(Node):
         declare_config(self, PREFIXES)
         declare_plant_overrides(self)                 # plant.mass etc.: the plant's, as the plant node has them
         for key, value in tuning_parameters(load_tuning()).items():
-            self.declare_parameter(key, value)
-        self.declare_parameter("scenarios", "")
-        self.declare_parameter("aggregate", "mean")
-        self.declare_parameter("evaluator", "batch")
-        self.declare_parameter("validate_best", True)
-        self.declare_parameter("lanes", [""])
-        self.declare_parameter("controller", "controller")
-        self.declare_parameter("plant", "plant")
-        self.declare_parameter("record", "")
-        self.declare_parameter("resume", "")
-        self.declare_parameter("episode_timeout", 120.0)
-        self.declare_parameter("log_every", 1)
+            self.declare_parameter(key, value, ParameterDescriptor(description=SWARM_PARAMETERS.get(key, key)))
+        for key, value, text in OWN_PARAMETERS:
+            self.declare_parameter(key, value, ParameterDescriptor(description=text))
         self.cfg = config_from_node(self, PREFIXES)
         self.tuning = self._tuning()
         self.evaluator = self.get_parameter("evaluator").value
@@ -281,9 +311,11 @@ class TunerNode(Node):
 
         def on_iteration(sw: Swarm) -> None:
             k = sw.gbest_x
-            self.progress_pub.publish(Float64MultiArray(data=[
-                float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations),
-                time.perf_counter() - t0]))
+            elapsed = time.perf_counter() - t0
+            done = max(sw.iteration, 1)
+            eta = elapsed / done * max(sw.settings.iterations - sw.iteration, 0)
+            self.progress_pub.publish(PROGRESS_LAYOUT.encode([
+                float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations), elapsed, eta]))
             if sw.iteration % every == 0 or sw.done:
                 log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
                          f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")

@@ -1,0 +1,46 @@
+"""What a new user runs into first: node --help, --version, namespaces, a missing rclpy."""
+import os
+import subprocess
+import sys
+
+import pytest
+
+from has_control.config import with_horizon
+from has_control.core.params import Config
+
+CLI = [sys.executable, "-m", "has_control.cli"]
+
+
+@pytest.mark.parametrize("node", ["plant", "controller", "tuner"])
+def test_node_help_prints_usage_and_every_parameter_without_starting_a_node(node, domain_id):
+    r = subprocess.run(CLI + [node, "--help"], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    assert r.stdout.startswith(f"usage: has-control {node}")
+    params = [line for line in r.stdout.splitlines() if line.startswith("  ") and " = " in line]
+    assert any(line.startswith("  actuator.mass = 1500.0: ") for line in params)
+    undescribed = [p for p in params if p.rstrip().endswith(":") and not p.startswith("  use_sim_time")]
+    assert undescribed == []                                  # every parameter says what it is
+    assert "ready" not in r.stdout
+
+
+def test_version():
+    r = subprocess.run(CLI + ["--version"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.startswith("has-control ")
+
+
+def test_a_missing_rclpy_is_one_line_naming_what_to_install(tmp_path):
+    (tmp_path / "rclpy.py").write_text("raise ModuleNotFoundError(\"No module named 'rclpy'\", name='rclpy')\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])}
+    for args in (["stack", "--duration", "0.1"], ["controller"]):
+        r = subprocess.run(CLI + args, capture_output=True, text=True, timeout=120, env=env)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert "rclpy not found" in r.stderr and "setup.bash" in r.stderr
+
+
+def test_a_relative_namespace_records_under_its_absolute_name(context, tmp_path):
+    from has_control.bag import read_bag
+    from has_control.nodes.stack import run_stack
+    run = run_stack(with_horizon(Config(), 1.5), namespace="sim0", record=tmp_path / "run", context=context)
+    bag = read_bag(run.bag)
+    assert bag.count("/sim0/state") == 5000 and bag.count("/sim0/command") >= 4999
