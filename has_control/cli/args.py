@@ -65,12 +65,11 @@ _NAMESPACE = re.compile(rf"/?(?:{_NAME}(?:/{_NAME})*)?")
 
 def namespace(text: str) -> str:
     """An argparse type: a ROS namespace (``/sim0``, ``sim0/a``; tokens of
-    letters, digits and underscores, not starting with a digit), absolute as
-    ROS resolves it (``sim0`` → ``/sim0``)."""
+    letters, digits and underscores, not starting with a digit)."""
     if not _NAMESPACE.fullmatch(text):
         raise argparse.ArgumentTypeError(f"{text!r}: not a ROS namespace (tokens of letters, digits and _, "
                                          "not starting with a digit, separated by /)")
-    return "/" + text.strip("/") if text.strip("/") else ""
+    return text
 
 
 def port(text: str) -> int:
