@@ -290,12 +290,13 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
                      namespaces: list[str] | None = None, record: str | None = None,
                      validate_best: bool = True, context: rclpy.Context | None = None,
                      domain_id: int | None = None, timeout: float = 3600.0, log_every: int = 1,
-                     scenarios: str | None = None, aggregate: str = "mean") -> dict:
+                     scenarios: str | None = None, aggregate: str = "mean", keep_episodes: bool = False) -> dict:
     """Plant and controller (one pair per namespace) and the tuner node in one
     process on the EventsExecutor; returns the tuner's result dict.
 
     ``changes``: swarm settings (seed, particles, iterations, variant) over
-    config/tuner.yaml and ``config_files``. ``scenarios``: a scenario file
+    config/tuner.yaml and ``config_files``. ``keep_episodes``: keep one bag per
+    graph episode under ``record/episodes``. ``scenarios``: a scenario file
     (robust tuning, batch evaluator) scored by ``aggregate``.
     """
     from has_control.tuning.tuner import load_tuning
@@ -314,7 +315,7 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
             Parameter("evaluator", value=evaluator), Parameter("lanes", value=list(namespaces)),
             Parameter("validate_best", value=validate_best), Parameter("record", value=record or ""),
             Parameter("log_every", value=log_every), Parameter("scenarios", value=str(scenarios or "")),
-            Parameter("aggregate", value=aggregate)])
+            Parameter("aggregate", value=aggregate), Parameter("keep_episodes", value=keep_episodes)])
         nodes.append(tuner)
         executor = EventsExecutor(context=context)
         for node in nodes:

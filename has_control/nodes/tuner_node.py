@@ -55,6 +55,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 
 from has_control.bag import BagError, score_bag
 from has_control.common.errors import ConfigError, HasControlError
+from has_control.core.episode import simulate
 from has_control.tuning.swarm import Swarm
 from has_control.tuning.tuner import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
@@ -97,7 +98,18 @@ OWN_PARAMETERS = (
     ("resume", "", "a directory of an interrupted session to resume"),
     ("episode_timeout", 120.0, "graph: an episode not finished after this long scores +inf [s of wall time]"),
     ("log_every", 1, "log every n-th iteration"),
+    ("keep_episodes", False, "graph: keep one bag per episode under record/episodes (default: scored, then deleted)"),
+    ("autostart", True, "tune at start-up and exit when done (false: wait for ~/start, serve until shut down)"),
+    ("lane_timeout", 30.0, "wait this long for the lanes' plant and controller [s]; with evaluator batch they "
+     "are optional (the best gains are set on them if found)"),
 )
+#: Bytes a recorded episode takes per sample (state, command, clock, reference, internals, each with
+#: its MCAP record header): the estimate logged before a graph tuning.
+BAG_BYTES_PER_SAMPLE = 246
+
+
+class Cancelled(Exception):
+    """``~/cancel`` was called: the session stops at the next episode or iteration."""
 
 
 def _wait(future, timeout: float, what: str):
@@ -229,7 +241,40 @@ class TunerNode(Node):
         self.result: dict | None = None
         self.error: str | None = None
         self.done = threading.Event()
+        self.done.set()                               # no session running
         self._thread: threading.Thread | None = None
+        self._cancel = threading.Event()
+        self.status = "idle: call ~/start"
+        self.create_service(Trigger, "~/start", self._on_start)
+        self.create_service(Trigger, "~/cancel", self._on_cancel)
+        self.create_service(Trigger, "~/status", self._on_status)
+
+    def _on_start(self, request, response):
+        response.success = self.done.is_set()
+        response.message = "session started" if response.success else f"busy: {self.status}"
+        if response.success:
+            self.start()
+        return response
+
+    def _on_cancel(self, request, response):
+        response.success = not self.done.is_set()
+        response.message = "cancelling at the next episode" if response.success else f"nothing to cancel: {self.status}"
+        if response.success:
+            self._cancel.set()
+        return response
+
+    def _on_status(self, request, response):
+        response.success = True
+        response.message = self.status
+        return response
+
+    def _check_cancel(self) -> None:
+        if self._cancel.is_set():
+            raise Cancelled()
+
+    @property
+    def lane_timeout(self) -> float:
+        return float(self.get_parameter("lane_timeout").value)
 
     def _tuning(self) -> Tuning:
         flat = {f"swarm.{k}": p.value for k, p in self.get_parameters_by_prefix("swarm").items()}
@@ -254,31 +299,49 @@ class TunerNode(Node):
     # --- session -------------------------------------------------------------
     def start(self) -> None:
         """Run the session in a thread of its own (the executor keeps spinning)."""
+        self.done.clear()
+        self._cancel.clear()
+        self.result = self.error = None
+        self.status = "running: starting"
         self._thread = threading.Thread(target=self._guarded, name="tuner-session", daemon=True)
         self._thread.start()
 
     def _guarded(self) -> None:
         try:
             self.result = self.run_session()
+            self.status = f"finished: best k = {tuple(round(k, 2) for k in self.result['gains'])}, J = " \
+                          f"{self.result['J']:.6e}"
+        except Cancelled:
+            self.status = "cancelled"
+            self.get_logger().warning("session cancelled (~/cancel); a recorded one resumes with resume:=DIR")
         except HasControlError as exc:
             self.error = str(exc)
+            self.status = f"failed: {self.error}"
             self.get_logger().error(self.error)
         except Exception as exc:                 # a bug, not bad input: keep its type in the report
             self.error = f"{type(exc).__name__}: {exc}"
+            self.status = f"failed: {self.error}"
             self.get_logger().error(f"tuning session failed: {self.error}")
         finally:
             self.done.set()
 
-    def wait_for_lanes(self, timeout: float = 30.0) -> None:
+    def wait_for_lanes(self, timeout: float | None = None, required: bool = True) -> bool:
+        """Wait for every lane's plant and controller (bringing managed ones up);
+        False if they are not all there in ``timeout`` and not ``required``."""
+        timeout = float(self.get_parameter("lane_timeout").value) if timeout is None else timeout
         end = time.monotonic() + timeout
         while not all(lane.ready() for lane in self.lanes):
+            self._check_cancel()
             for lane in self.lanes:
                 lane.bring_up()
             if time.monotonic() > end:
+                if not required:
+                    return False
                 missing = [lane.namespace for lane in self.lanes if not lane.ready()]
                 raise HasControlError(f"lanes {missing}: plant, controller (and their services) not found "
                                       f"within {timeout:g} s")
             time.sleep(0.01)
+        return True
 
     def run_session(self) -> dict:
         """The session (the same runner as ``has-control tune``), candidates scored
@@ -295,30 +358,44 @@ class TunerNode(Node):
         every = max(1, int(self.get_parameter("log_every").value))
         used: dict = {}
 
+        def lanes_up() -> bool:                   # with evaluator batch, lanes are optional
+            return used.get("lanes", True)
+
         def make_objective(cfg):
             used["cfg"] = cfg
-            self.wait_for_lanes()
+            graph = self.evaluator == "graph"
+            used["lanes"] = self.wait_for_lanes(None if graph else min(5.0, self.lane_timeout), required=graph)
+            if not used["lanes"]:
+                log.info("no plant/controller lanes found: the batch evaluator alone, validation in-process; "
+                         "the best gains are set on no controller")
+                return None
             n = cfg.episode.samples
             for lane in self.lanes:
                 reason = lane.set_parameters(lane.plant_params, [Parameter("samples", value=n)], lane.plant_name)
                 if reason:
                     raise HasControlError(f"{lane.plant_name} rejected samples = {n}: {reason}")
-            if self.evaluator != "graph":
+            if not graph:
                 return None
             directory = resume_dir or record
-            episodes = Path(directory) / "episodes" if directory else scratch
-            return self._graph_objective(cfg, episodes, timeout, keep=bool(directory))
+            keep = bool(directory) and bool(self.get_parameter("keep_episodes").value)
+            episodes = Path(directory) / "episodes" if keep else scratch
+            self._announce_graph(cfg, keep, episodes)
+            return self._graph_objective(cfg, episodes, timeout, keep=keep)
 
         def on_iteration(sw: Swarm) -> None:
             k = sw.gbest_x
             elapsed = time.perf_counter() - t0
             done = max(sw.iteration, 1)
             eta = elapsed / done * max(sw.settings.iterations - sw.iteration, 0)
+            self.status = (f"running: iteration {sw.iteration}/{sw.settings.iterations}, best J = {sw.gbest_f:.6e}, "
+                           f"ETA {eta:.0f} s")
             self.progress_pub.publish(PROGRESS_LAYOUT.encode([
                 float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations), elapsed, eta]))
             if sw.iteration % every == 0 or sw.done:
                 log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
-                         f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")
+                         f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations, "
+                         f"ETA {eta:.0f} s")
+            self._check_cancel()
 
         def record_validation(gains, writer, cfg) -> None:     # through the graph, into the session bag
             self.lanes[0].run(gains, cfg, writer.path, timeout, writer=writer, prefix="/validation")
@@ -326,14 +403,25 @@ class TunerNode(Node):
         try:
             run = run_session(self.cfg, self.tuning, record, resume_dir=resume_dir, evaluator=self.evaluator,
                               make_objective=make_objective, on_iteration=on_iteration,
-                              record_validation=record_validation if validate else None,
+                              record_validation=record_validation if validate and lanes_up() else None,
                               announce=log.info, on_warning=log.warning)
             res, out, best = run.result, dict(run.out), run.result.gains
+            out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes] if lanes_up() else [])
+            if not lanes_up():
+                if validate:
+                    validation = simulate(used["cfg"], best).score
+                    out["validation"] = validation.as_json()
+                    out["validation_bag"] = None
+                    log.info(f"validated k = ({best[0]:.2f}, {best[1]:.2f}, {best[2]:.2f}) in-process: "
+                             f"J = {validation.J:.6e}")
+                if run.directory:
+                    out["gains_file"] = str(run.directory / "gains.yaml")
+                out["controller_gains"] = None
+                return out
             for lane in self.lanes:
                 reason = lane.set_gains(best)
                 if reason:
                     raise HasControlError(f"{lane.controller_name} rejected the best gains {best}: {reason}")
-            out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes])
             if validate:
                 bag = run.bag
                 if bag is None:
@@ -351,6 +439,21 @@ class TunerNode(Node):
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
 
+    def _announce_graph(self, cfg, keep: bool, episodes: Path) -> None:
+        """Before a graph tuning: how many episodes, how long (from a lock-step rate
+        of 1 000–20 000 samples/s per lane), and what the bags take."""
+        t = self.tuning.swarm
+        count = t.particles * t.iterations
+        samples = cfg.episode.samples
+        lanes = len(self.lanes)
+        per_bag = samples * BAG_BYTES_PER_SAMPLE
+        fast, slow = (count * samples / lanes / rate for rate in (20_000.0, 1_000.0))
+        self.get_logger().info(
+            f"graph tuning: {count} episodes of {samples} samples over {lanes} lane(s), about "
+            f"{_duration(fast)} to {_duration(slow)}; each episode's bag ~{per_bag / 1e6:.1f} MB, "
+            + (f"kept under {episodes} ({count * per_bag / 1e9:.2f} GB in all)" if keep
+               else "scored then deleted (keep_episodes:=true keeps them)") + "; ~/progress shows the ETA")
+
     def _graph_objective(self, cfg, episodes: Path, timeout: float, keep: bool):
         free: queue.Queue[Lane] = queue.Queue()
         for lane in self.lanes:
@@ -360,6 +463,7 @@ class TunerNode(Node):
 
         def one(args) -> float:
             i, gains = args
+            self._check_cancel()
             lane = free.get()
             try:
                 bag = episodes / f"batch{batch[0]:04d}_candidate{i:03d}"
@@ -377,14 +481,25 @@ class TunerNode(Node):
         return objective
 
 
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
+
+
 def main(args=None):
     from has_control.nodes.runtime import node_main, spin
     failed = []
 
     def serve(executor, node: TunerNode) -> None:
-        node.start()
-        spin(executor, done=node.done.is_set)
-        failed.append(bool(node.error))
+        if node.get_parameter("autostart").value:
+            node.start()
+            node.get_logger().info("ready: tuning (~/cancel stops it, ~/status tells)")
+            spin(executor, done=node.done.is_set)
+            failed.append(bool(node.error))
+        else:
+            node.get_logger().info("ready: call ~/start to tune (~/cancel, ~/status)")
+            spin(executor)
     node_main(args, TunerNode, serve)
     if any(failed):
         raise SystemExit(2)
