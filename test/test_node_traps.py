@@ -62,3 +62,29 @@ def test_the_foxglove_layout_plots_columns_that_exist():
         assert "[" in p["label"]                              # a unit in every label
     assert {CONTROLLER_STATE_COLUMNS[int(re.search(r"\[(\d)\]", p["value"]).group(1))]
             for p in paths if "controller_state" in p["value"]} == {"e1", "x1d", "a1_hat", "a2_hat"}
+
+
+def test_replay_controller_tests_the_running_node_it_names(context, domain_id, tmp_path):
+    """--controller NODE feeds the running node (a controller with other gains
+    mismatches); --check-code is the in-process regression check."""
+    import time
+    from has_control.nodes.stack import run_stack
+    bag = run_stack(with_horizon(Config(), 1.5), record=tmp_path / "run", context=context).bag
+    env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
+    for gains, expected in (("300.0", 1), ("150.0", 0)):
+        node = subprocess.Popen(CLI + ["controller", "--ros-args", "-r", "__ns:=/live", "-p", f"gains.k1:={gains}",
+                                       "-p", "publish_internals:=false"], env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            time.sleep(1.0)
+            r = subprocess.run(CLI + ["replay", str(bag), "--controller", "/live/controller"], env=env,
+                               capture_output=True, text=True, timeout=300)
+        finally:
+            node.terminate()
+            node.wait(timeout=30)
+        assert r.returncode == expected, r.stderr
+        assert "states to the controller node /live/controller: " in r.stdout
+        assert (": 0 mismatches" in r.stdout) == (expected == 0)
+    r = subprocess.run(CLI + ["replay", str(bag), "--controller", "/nobody/controller"], env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "/nobody/controller" in r.stderr
