@@ -23,6 +23,8 @@ def add_arguments(p) -> None:
     p.add_argument("--record", metavar="DIR", help="record the run to a rosbag2 MCAP bag DIR")
     p.add_argument("--foxglove", nargs="?", type=port, const=8765, metavar="PORT",
                    help="serve the run's topics live to Foxglove on ws://127.0.0.1:PORT (default 8765)")
+    p.add_argument("--foxglove-wait", type=float, default=0.0, metavar="S",
+                   help="with --foxglove: wait up to S seconds for a client to subscribe before the run")
     p.add_argument("--realtime", action="store_true",
                    help="pace the loop to wall time (paced lock-step; misses and lateness in --json)")
     p.add_argument("--tune", action="store_true",
@@ -68,7 +70,8 @@ def run(args) -> int:
     try:
         result = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True, record=record,
                            realtime=args.realtime, progress=progress if line and line.enabled else None,
-                           foxglove=args.foxglove)
+                           foxglove=args.foxglove, foxglove_wait=args.foxglove_wait,
+                           announce=lambda text: print(text, flush=True))
     finally:
         if line:
             line.close()

@@ -68,7 +68,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
               domain_id: int | None = None, record: str | Path | None = None,
               realtime: bool = False, priority: int = 50,
               progress: Callable[[int, int, float], None] | None = None,
-              foxglove: int | None = None) -> StackRun:
+              foxglove: int | None = None, foxglove_wait: float = 0.0,
+              announce: Callable[[str], None] | None = None) -> StackRun:
     """Run one episode through plant and controller nodes composed in this
     process (the ros2_control layout), lock-step or, with ``realtime``, paced
     to wall time (SCHED_FIFO at ``priority`` where permitted).
@@ -77,8 +78,11 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     the bytes the nodes publish (the controller then publishes its internals,
     which the bag needs for scoring). ``progress(samples done, samples,
     samples/s)`` is called about once a second. ``foxglove``: also serve the
-    run's topics live on a Foxglove WebSocket at this port of 127.0.0.1
-    (:class:`~has_control.nodes.foxglove.LiveView`) for the run.
+    run's topics live on a Foxglove WebSocket at this port of 127.0.0.1 for the
+    run, from a viewer process (:class:`~has_control.nodes.live_process.LiveViewProcess`:
+    the loop only copies each message into a ring); ``announce(line)`` hears its
+    URL before the run starts, and the run waits up to ``foxglove_wait`` seconds
+    for a client to subscribe.
     """
     from has_control.config import build_config
     cfg = cfg or Config()
@@ -88,6 +92,9 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                             "gains.k3": float(gains[2])}, source="--gains", base=cfg)
     with borrowed_context(context, args=args, domain_id=domain_id) as context, _live_view(foxglove) as live:
         t0 = time.perf_counter()
+        if live is not None and announce is not None:
+            announce(f"serving live on ws://127.0.0.1:{live.port} (Foxglove: open a WebSocket connection; "
+                     "layout config/foxglove/has_control.json)")
         params = _overrides(cfg)
         n = cfg.episode.samples
         recorder = executor = None
@@ -117,6 +124,10 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             for node in nodes:
                 executor.add_node(node)
             _wait_for_match(executor, plant, controller)
+            if live is not None and foxglove_wait > 0:
+                if announce is not None:
+                    announce(f"waiting up to {foxglove_wait:g} s for a Foxglove client")
+                live.wait_for_client(foxglove_wait)
             plant.stop_on_conflict = True        # a run with a stranger in it is over: fail it now
 
             def stop_if_conflicts() -> None:
@@ -195,8 +206,8 @@ def _live_view(port: int | None):
     if port is None:
         from contextlib import nullcontext
         return nullcontext()
-    from has_control.nodes.foxglove import LiveView
-    return LiveView(port)
+    from has_control.nodes.live_process import LiveViewProcess
+    return LiveViewProcess(port)
 
 
 def _refuse_strangers(plant, controller) -> None:
