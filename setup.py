@@ -13,6 +13,9 @@ setup(
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/config", glob("config/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
+        ("share/" + package_name + "/config/foxglove", glob("config/foxglove/*.json")),
+        # ``ros2 run has_control plant`` (colcon): lib/has_control/<node>; pip puts only has-control* on PATH
+        ("lib/" + package_name, glob("resource/ros2_run/*")),
     ],
     install_requires=["setuptools", "numpy", "numba", "matplotlib", "pyyaml", "rosbags", "zstandard"],
     zip_safe=True,
@@ -26,9 +29,9 @@ setup(
     entry_points={
         "console_scripts": [
             "has-control = has_control.cli:main",
-            "plant = has_control.nodes.plant_node:main",
-            "controller = has_control.nodes.controller_node:main",
-            "tuner = has_control.nodes.tuner_node:main",
+            "has-control-plant = has_control.cli.main:plant",
+            "has-control-controller = has_control.cli.main:controller",
+            "has-control-tuner = has_control.cli.main:tuner",
         ],
     },
 )

@@ -206,11 +206,12 @@ def test_the_recorder_never_overwrites(recorded):
 # --- replay ----------------------------------------------------------------------
 
 @pytest.mark.ros
-def test_replay_to_a_live_controller_matches_bit_for_bit(recorded, domain_id):
+def test_replay_to_this_codes_controller_matches_bit_for_bit(recorded, domain_id):
     d, _, _ = recorded
-    r = cli("replay", d, "--controller", domain=domain_id)
+    r = cli("replay", d, "--check-code", domain=domain_id)
     assert r.returncode == 0, r.stderr
-    assert f"replayed {N} states to a live controller: 0 mismatches, max |du| = 0.000e+00 m" in r.stdout
+    assert (f"replayed {N} states to an in-process controller built from the bag's parameters: 0 mismatches, "
+            "max |du| = 0.000e+00 m") in r.stdout
 
 
 def _with_parameters(src, dst, **changes):

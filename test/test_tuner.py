@@ -40,7 +40,8 @@ def test_stack_tune_sets_the_best_gains_through_parameters(domain_id):
 def test_graph_evaluation_over_two_lanes_equals_the_batch_evaluator(domain_id, tmp_path):
     cfg = with_horizon(Config(), 1.5)
     out = run_tuning_stack(cfg, {"iterations": 2, "particles": 3}, evaluator="graph",
-                           namespaces=["/sim0", "/sim1"], record=str(tmp_path / "rec"), domain_id=domain_id)
+                           namespaces=["/sim0", "/sim1"], record=str(tmp_path / "rec"), domain_id=domain_id,
+                           keep_episodes=True)
     ref = tune(cfg, load_tuning().replace(iterations=2, particles=3))
     assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun
     assert out["history"] == [h.best_cost for h in ref.result.history]
@@ -132,7 +133,8 @@ def test_graph_lanes_in_separate_processes_equal_the_batch_evaluator(domain_id, 
         rec = tmp_path / "rec"
         r = subprocess.run(cli_ + ["tuner", "--ros-args", "-p", "evaluator:=graph", "-p", "lanes:=['/sim0','/sim1']",
                                    "-p", "swarm.iterations:=2", "-p", "swarm.particles:=3",
-                                   "-p", "simulation.horizon:=1.5", "-p", f"record:={rec}"],
+                                   "-p", "simulation.horizon:=1.5", "-p", f"record:={rec}",
+                                   "-p", "keep_episodes:=true"],
                            env=env, capture_output=True, text=True, timeout=600)
         assert r.returncode == 0, r.stderr[-2000:]
     finally:

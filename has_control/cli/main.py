@@ -12,9 +12,11 @@ import signal
 import sys
 import threading
 from importlib import import_module
+from importlib.metadata import PackageNotFoundError, version
 
 from has_control.cli import bag_info, plot, reproduce, replay, robustness, score, simulate, stack, tune
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
+from has_control.cli.node_help import print_help, wants_help
 from has_control.common.errors import HasControlError
 
 #: The subcommands, in the order ``--help`` lists them.
@@ -28,12 +30,15 @@ NODES = {"plant": "plant_node", "controller": "controller_node", "tuner": "tuner
 def run_node(name: str, ros_args: list[str]) -> int:
     """Run one node as this process (for machines without the ros2 command);
     everything after the node's name goes to ROS (``--ros-args -p k:=v ...``)."""
+    if wants_help(ros_args):
+        return print_help(name)
     import_module(f"has_control.nodes.{NODES[name]}").main(args=[f"has-control {name}", *ros_args])
     return 0
 
 
 def build_parser() -> Parser:
     p = Parser(prog="has-control", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"has-control {_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     for name, command in COMMANDS.items():
         sp = sub.add_parser(name, help=command.HELP)
@@ -68,12 +73,50 @@ def main(argv=None) -> int:
     except OSError as exc:
         print(f"has-control: error: {_os_error_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").split(".")[0] not in ROS_MODULES:
+            raise
+        print(f"has-control: error: {exc.name} not found: this command needs ROS 2's Python packages "
+              "(source /opt/ros/<distro>/setup.bash, or pip install the ros-* pins of requirements.txt)",
+              file=sys.stderr)
+        return EXIT_USAGE
     except MemoryError:
         print("has-control: error: out of memory", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("has-control: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+#: Top-level modules that come with ROS 2 (rclpy and the message packages), not with pip install.
+ROS_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "std_msgs", "std_srvs",
+               "rosgraph_msgs", "diagnostic_msgs", "lifecycle_msgs", "rpyutils", "rosidl_runtime_py"}
+
+
+def _version() -> str:
+    try:
+        return version("has_control")
+    except PackageNotFoundError:                 # run from a source tree
+        return "0.1.0 (source tree)"
+
+
+def plant() -> int:
+    """The ``has-control-plant`` console script."""
+    return main_of("plant")
+
+
+def controller() -> int:
+    """The ``has-control-controller`` console script."""
+    return main_of("controller")
+
+
+def tuner() -> int:
+    """The ``has-control-tuner`` console script."""
+    return main_of("tuner")
+
+
+def main_of(node: str) -> int:
+    return main([node, *sys.argv[1:]])
 
 
 def _ignore_interrupts() -> None:

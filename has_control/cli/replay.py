@@ -1,7 +1,10 @@
-"""``has-control replay``: publish a bag with its timing, or replay its states to a controller."""
+"""``has-control replay``: publish a bag with its timing, or replay its states to a
+running controller node (``--controller NODE``) or to this code's controller
+built from the bag (``--check-code``)."""
 from __future__ import annotations
 
 from has_control.cli.args import at_least
+from has_control.common.errors import HasControlError
 
 HELP = "publish a bag with its timing, or replay it to a controller"
 RATE_MIN = 1e-3                     # --rate: slower than this is a stalled replay
@@ -12,18 +15,26 @@ def add_arguments(p) -> None:
     p.add_argument("--rate", type=at_least(RATE_MIN), default=1.0, metavar="R",
                    help=f"time scale, >= {RATE_MIN:g} (default 1.0)")
     p.add_argument("--topics", nargs="+", metavar="TOPIC", help="only these topics")
-    p.add_argument("--controller", action="store_true",
-                   help="feed the recorded states to a live controller and compare its commands")
+    p.add_argument("--controller", nargs="?", const="/controller", metavar="NODE",
+                   help="feed the recorded states to the running controller node NODE (default /controller; "
+                        "reset first) and compare its commands")
+    p.add_argument("--check-code", action="store_true",
+                   help="feed the recorded states to a controller built in this process from the bag's "
+                        "parameters (a regression check of this code) and compare its commands")
     p.add_argument("--tolerance", type=at_least(0.0), default=0.0, metavar="DU",
-                   help="with --controller: |du| [m] counted as a match (default 0: bit for bit)")
+                   help="with --controller/--check-code: |du| [m] counted as a match (default 0: bit for bit)")
 
 
 def run(args) -> int:
     # lazy: rclpy loads only for the commands that run nodes
     from has_control.nodes.replay import replay, replay_controller
-    if args.controller:
-        r = replay_controller(args.bag, tolerance=args.tolerance)
-        print(f"{args.bag}: replayed {r.samples} states to a live controller: "
+    if args.controller is not None or args.check_code:
+        if args.controller is not None and args.check_code:
+            raise HasControlError("--controller and --check-code: one or the other")
+        r = replay_controller(args.bag, tolerance=args.tolerance, node=args.controller)
+        who = (f"the controller node {args.controller}" if args.controller is not None
+               else "an in-process controller built from the bag's parameters")
+        print(f"{args.bag}: replayed {r.samples} states to {who}: "
               f"{r.mismatches} mismatches, max |du| = {r.max_abs_diff:.3e} m"
               + (f" (first at sample {r.first_mismatch})" if r.mismatches else ""))
         return 0 if r.mismatches == 0 else 1

@@ -23,6 +23,8 @@ def add_arguments(p) -> None:
     p.add_argument("--record", metavar="DIR", help="record the run to a rosbag2 MCAP bag DIR")
     p.add_argument("--foxglove", nargs="?", type=port, const=8765, metavar="PORT",
                    help="serve the run's topics live to Foxglove on ws://127.0.0.1:PORT (default 8765)")
+    p.add_argument("--foxglove-wait", type=float, default=0.0, metavar="S",
+                   help="with --foxglove: wait up to S seconds for a client to subscribe before the run")
     p.add_argument("--realtime", action="store_true",
                    help="pace the loop to wall time (paced lock-step; misses and lateness in --json)")
     p.add_argument("--tune", action="store_true",
@@ -33,6 +35,8 @@ def add_arguments(p) -> None:
     p.add_argument("--iterations", type=positive_int, metavar="N", help="with --tune")
     p.add_argument("--evaluator", choices=("batch", "graph"), default="batch",
                    help="with --tune: score candidates in-process (batch) or through the nodes (graph)")
+    p.add_argument("--keep-episodes", action="store_true",
+                   help="with --tune --evaluator graph --record DIR: keep one bag per episode under DIR/episodes")
     p.add_argument("--lanes", nargs="+", type=namespace, metavar="NS", default=None,
                    help="with --tune --evaluator graph: plant/controller pairs in these namespaces")
 
@@ -66,7 +70,8 @@ def run(args) -> int:
     try:
         result = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True, record=record,
                            realtime=args.realtime, progress=progress if line and line.enabled else None,
-                           foxglove=args.foxglove)
+                           foxglove=args.foxglove, foxglove_wait=args.foxglove_wait,
+                           announce=lambda text: print(text, flush=True))
     finally:
         if line:
             line.close()
@@ -94,7 +99,8 @@ def _tune(args, cfg, run_tuning_stack) -> int:
     changes = {k: v for k, v in (("seed", args.seed), ("particles", args.particles),
                                  ("iterations", args.iterations), ("variant", args.variant)) if v is not None}
     out = run_tuning_stack(cfg, changes, config_files=args.config or [], evaluator=args.evaluator,
-                           namespaces=args.lanes, record=args.record, validate_best=True)
+                           namespaces=args.lanes, record=args.record, validate_best=True,
+                           keep_episodes=args.keep_episodes)
     if args.json:
         print(json.dumps(out))
     else:
@@ -106,5 +112,6 @@ def _tune(args, cfg, run_tuning_stack) -> int:
         if v:
             print(f"validated through the graph: J = {v['J']:.6e}, e_max = {v['e_max']:.4e} m"
                   + (f", from {out['validation_bag']}" if out.get("validation_bag") else ""))
-        print(f"controller gains now ({', '.join(f'{g:.2f}' for g in out['controller_gains'])})")
+        if out.get("controller_gains"):
+            print(f"controller gains now ({', '.join(f'{g:.2f}' for g in out['controller_gains'])})")
     return 0

@@ -28,12 +28,38 @@ run and whenever new gains take effect. Parameter ``foxglove_port``: serve
 these topics live on a Foxglove WebSocket at this port of 127.0.0.1
 (:mod:`has_control.nodes.foxglove`; 0: off). Service ``~/reset``
 (std_srvs/Trigger): estimates back to â(0), the next state starts a new run.
+
+Managed node (:mod:`has_control.nodes.managed`): ``configure`` validates the
+parameters, builds the tables and creates the topics; ``activate`` starts
+answering (estimates at â(0), a new run); ``deactivate`` centres the valve (a
+command u = 0 for the next sample) and stops answering; ``cleanup`` and
+``shutdown`` release the topics. ``autostart`` (default true) does configure
+and activate at start-up.
+
+Interfaces (parameter ``interface``): ``has_control`` (default; the plant's
+``state``/``command`` above) or ``ros2_control``: the state is read from the
+``sensor_msgs/JointState`` topic ``joint_states_topic`` (default
+``/joint_states``, what ros2_control's joint_state_broadcaster publishes) through
+``state_interfaces``, four ``joint/interface`` entries for y [m], ẏ [m/s],
+P1 [Pa], P2 [Pa] (interface: position, velocity or effort; other joints in the
+message are ignored), and the valve command u [m] is written as
+``std_msgs/Float64MultiArray`` ``[u]`` on ``command_topic`` (default
+``/forward_command_controller/commands``, what a forward_command_controller
+takes). Each state that arrives is answered at once, as sample i = the number
+of states answered since activation (its time i·Δt); see docs/ros2_control.md.
+
+``/diagnostics`` (once a second, name "<node>: control law"): states
+answered, late (answers that took longer than one step Δt to compute),
+malformed, conflicts and whether â1, â2 are within ``adaptation.lower..upper``.
 """
-from __future__ import annotations
+
+import math
+import time
 
 import numpy as np
-from rcl_interfaces.msg import SetParametersResult
-from rclpy.node import Node
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
@@ -41,48 +67,170 @@ from has_control.wire import steps
 from has_control.core.episode import TRACE_COLUMNS, EpisodeArrays
 from has_control.common.errors import ConfigError
 from has_control.wire.topics import (
-    COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE, CONTROLLER_STATE_LAYOUT, GAINS, GAINS_LAYOUT, REFERENCE,
-    REFERENCE_LAYOUT, STATE,
+    CLOCK_LAYOUT, COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE, CONTROLLER_STATE_LAYOUT, FORWARD_COMMAND_LAYOUT, GAINS,
+    GAINS_LAYOUT, REFERENCE, REFERENCE_LAYOUT, STATE, STATE_LAYOUT,
 )
 from has_control.wire.codec import NOT_FINITE, get_stamp
 from has_control.nodes.foxglove import node_tap
+from has_control.nodes.managed import refuse, bring_up, declare_autostart, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
 from has_control.nodes.parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "noise.")
+INTERFACES = ("has_control", "ros2_control")
+INTERFACE_KINDS = ("position", "velocity", "effort")
+#: The controller's own parameters: (name, default, meaning and unit, read-only).
+OWN_PARAMETERS = (
+    ("publish_internals", True, "publish ~/controller_state and ~/reference every sample", False),
+    ("interface", "has_control", "has_control (the plant's state/command JointStates) | ros2_control "
+     "(JointState from joint_states_topic, Float64MultiArray [u] on command_topic)", True),
+    ("joint_states_topic", "/joint_states", "ros2_control: the sensor_msgs/JointState topic read", True),
+    ("command_topic", "/forward_command_controller/commands",
+     "ros2_control: the std_msgs/Float64MultiArray topic the valve command u [m] is written to", True),
+    ("state_interfaces", ["actuator/position", "actuator/velocity", "chamber_1/effort", "chamber_2/effort"],
+     "ros2_control: joint/interface of y [m], y_dot [m/s], P1 [Pa], P2 [Pa] "
+     "(interface: position, velocity or effort)", True),
+)
 
 
-class ControllerNode(Node):
+def parse_state_interfaces(entries) -> list[tuple[str, int]]:
+    """``joint/interface`` × 4 → [(joint, 0 position | 1 velocity | 2 effort)]
+    (ValueError naming the parameter if not so)."""
+    entries = list(entries)
+    if len(entries) != 4:
+        raise ValueError(f"parameter state_interfaces = {entries!r}: expected 4 joint/interface entries "
+                         "(y, y_dot, P1, P2)")
+    out = []
+    for e in entries:
+        joint, _, kind = str(e).rpartition("/")
+        if not joint or kind not in INTERFACE_KINDS:
+            raise ValueError(f"parameter state_interfaces: {e!r}: expected JOINT/INTERFACE with INTERFACE one of "
+                             f"{', '.join(INTERFACE_KINDS)}")
+        out.append((joint, INTERFACE_KINDS.index(kind)))
+    return out
+
+
+class ControllerNode(LifecycleNode):
     def __init__(self, name: str = "controller", tap=None, **kwargs):
         """``tap(topic)``: a function taking every message published on ``topic`` (an in-process observer)."""
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES, read_only=("simulation.",))
-        self.declare_parameter("publish_internals", True)
+        for key, value, text, read_only in OWN_PARAMETERS:
+            desc = ParameterDescriptor(description=text, read_only=read_only)
+            if key == "interface":
+                desc.additional_constraints = f"one of: {', '.join(INTERFACES)}"
+            self.declare_parameter(key, value, desc)
+        autostart = declare_autostart(self)
         self._mem = np.zeros(steps.CONTROLLER_MEMORY)
         self._command = COMMAND_LAYOUT.buffer()
         self._internals = CONTROLLER_STATE_LAYOUT.buffer()
         self._reference = REFERENCE_LAYOUT.buffer()
+        self._state_buf, self._clock_buf = STATE_LAYOUT.buffer(), CLOCK_LAYOUT.buffer()
+        self._x = np.zeros(5)
+        self._scratch = steps.scratch()
         self.trace = np.zeros((0, len(TRACE_COLUMNS)))
-        self.malformed_states = 0
-        self.conflicts = 0
-        self._apply(config_from_node(self, PREFIXES))
+        self.malformed_states = self.conflicts = self.states_answered = self.late = 0
+        self.cfg = None
+        self.configure_error = ""
+        self.quiet = False                        # True: no "ready"/"inactive" lines (stack drives us)
+        self.active = False
         self._pending = None
-        self.reset()
-        steps.warm_up()                         # compile or load the step before joining the graph
+        self._entities: list = []
+        self._state_topic = ""
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
-        self.command_pub = self.create_publisher(JointState, COMMAND, CONTROL_QOS)
+        self._tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
+        trigger_service(self, "~/reset", self.reset, "estimates reset to adaptation.initial")
+        if autostart:
+            bring_up(self)
+
+    # --- lifecycle -----------------------------------------------------------
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Validate the parameters, build the tables, create the topics."""
+        try:
+            interface = self.get_parameter("interface").value
+            if interface not in INTERFACES:
+                raise ValueError(f"parameter interface = {interface!r}: expected one of {', '.join(INTERFACES)}")
+            mapping = parse_state_interfaces(self.get_parameter("state_interfaces").value)
+            self._apply(config_from_node(self, PREFIXES))
+        except (ConfigError, ValueError) as exc:
+            return refuse(self, exc)
+        self._pending = None
+        self.interface = interface
+        steps.warm_up()                         # compile or load the step before joining the graph
+        tap = self._tap
         self.internals_pub = self.create_publisher(Float64MultiArray, "~/controller_state", qos(CONTROLLER_STATE))
         self.reference_pub = self.create_publisher(Float64MultiArray, "~/reference", qos(REFERENCE))
         self.gains_pub = self.create_publisher(Float64MultiArray, "~/gains", qos(GAINS))
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        if interface == "has_control":
+            self.command_pub = self.create_publisher(JointState, COMMAND, CONTROL_QOS)
+            sub = self.create_subscription(JointState, STATE, self._on_state, CONTROL_QOS, raw=True)
+        else:
+            self._mapping, self._names, self._index = mapping, None, None
+            self.command_pub = self.create_publisher(
+                Float64MultiArray, self.get_parameter("command_topic").value, CONTROL_QOS)
+            sub = self.create_subscription(JointState, self.get_parameter("joint_states_topic").value,
+                                           self._on_joint_state, CONTROL_QOS)
+        self._state_topic = sub.topic_name
         self._publish_command = raw_publish(self.command_pub, tap)
         self._publish_internals = raw_publish(self.internals_pub, tap)
         self._publish_reference = raw_publish(self.reference_pub, tap)
         self._publish_gains = raw_publish(self.gains_pub, tap)
-        self._state_topic = self.create_subscription(JointState, STATE, self._on_state, CONTROL_QOS,
-                                                     raw=True).topic_name
-        trigger_service(self, "~/reset", self.reset, "estimates reset to adaptation.initial")
         self.publish_internals = bool(self.get_parameter("publish_internals").value)
+        timer = self.create_timer(1.0, self._diagnose)
+        self._entities = [sub, timer, self.command_pub, self.internals_pub, self.reference_pub, self.gains_pub,
+                          self.diagnostics_pub]
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """A new run from â(0); answer every state from now on."""
+        self.reset()
+        self.active = True
+        where = f"states on {self._state_topic}, commands on {self.command_pub.topic_name}"
+        if not self.quiet:
+            self.get_logger().info(f"ready: answering {where} (interface {self.interface}, gains {self.k})")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Stop answering; centre the valve (u = 0 for the next sample)."""
+        self.active = False
+        self._centre_valve()
+        if not self.quiet:
+            self.get_logger().info("inactive: valve centred, not answering")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self.active:
+            self.active = False
+            self._centre_valve()
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        """Destroy the topics and the timer made by ``configure``; forget the tables."""
+        if self._entities:
+            sub, timer, *pubs = self._entities
+            self.destroy_subscription(sub)
+            self.destroy_timer(timer)
+            for pub in pubs:
+                self.destroy_publisher(pub)
+        self._entities = []
+        self.cfg = None
+
+    def _centre_valve(self) -> None:
+        """A centred valve (u = 0): in ros2_control mode ``[0.0]`` on the command
+        topic; else a command u = 0 for the sample after the last one answered."""
+        if self.cfg is None:
+            return
+        if self.interface == "ros2_control":
+            self.command_pub.publish(FORWARD_COMMAND_LAYOUT.encode([0.0]))
+        elif self._last_state:
+            self.command_pub.publish(COMMAND_LAYOUT.encode([0.0], stamp_ns=(self._sample(self._last_state) + 1)
+                                                           * self.step_ns))
 
     def _apply(self, cfg, arr: EpisodeArrays | None = None) -> None:
         self.cfg = cfg
@@ -96,9 +244,11 @@ class ControllerNode(Node):
 
     def reset(self) -> None:
         """Estimates back to â(0); the next sample starts a new run."""
-        self._mem[steps.A1_HAT], self._mem[steps.A2_HAT] = self.cfg.adaptation.initial
+        if self.cfg is not None:
+            self._mem[steps.A1_HAT], self._mem[steps.A2_HAT] = self.cfg.adaptation.initial
         self._mem[steps.X3D_PREV] = self._mem[steps.HAS_PREV] = 0.0
         self._last_state = self._last_command = b""
+        self._next = 0                          # ros2_control: the sample the next state is
         self._announce = True                   # publish the gains in force at the next sample
 
     @property
@@ -138,6 +288,9 @@ class ControllerNode(Node):
         return int(get_stamp(data)) // self.step_ns if len(data) >= 12 else -1
 
     def _on_state(self, data) -> None:
+        if not self.active:
+            return
+        began = time.perf_counter_ns()
         if not isinstance(data, bytes):          # a message object (in-process callers, tests)
             from rclpy.serialization import serialize_message
             data = serialize_message(data)
@@ -167,9 +320,78 @@ class ControllerNode(Node):
             self._announce = False
         self._last_state, self._last_command = data, bytes(self._command)
         self._publish_command(self._last_command)
+        self._answered(i, began)
+
+    def _answered(self, i: int, began: int) -> None:
+        """The internals of sample i after its command; count it (late: over one step)."""
         if self.publish_internals:
             self._publish_internals(bytes(self._internals))
             self._publish_reference(bytes(self._reference))
+        self.states_answered += 1
+        if time.perf_counter_ns() - began > self.step_ns:
+            self.late += 1
+
+    def _on_joint_state(self, msg: JointState) -> None:
+        """ros2_control: a JointState by the mapping ``state_interfaces``, answered
+        as the next sample with ``[u]`` on the command topic."""
+        if not self.active:
+            return
+        began = time.perf_counter_ns()
+        if msg.name != self._names:             # the joints' order is looked up once per layout
+            self._names = list(msg.name)
+            index = {n: k for k, n in enumerate(self._names)}
+            self._index = [(index.get(joint, -1), kind) for joint, kind in self._mapping]
+        x = self._x
+        arrays = (msg.position, msg.velocity, msg.effort)
+        for k, (j, kind) in enumerate(self._index):
+            values = arrays[kind]
+            if j < 0 or j >= len(values):
+                return self._refused("a joint or interface of state_interfaces missing")
+            x[k] = values[j]
+        if not (math.isfinite(x[0]) and math.isfinite(x[1]) and math.isfinite(x[2]) and math.isfinite(x[3])):
+            return self._refused("a non-finite value")
+        if self._pending is not None:
+            self._apply(*self._pending)
+            self._pending = None
+            self._announce = True
+        i = self._next
+        steps.encode_state(x, self.ap, i, self.step_ns, self._state_buf, self._clock_buf, self._scratch)
+        steps.controller_sample(self._state_buf, self._mem, self._gains, self.ap, self.cp, self.rp, self.sp,
+                                self.seed, self.dt, self.step_ns, self._command, self._internals,
+                                self._reference, self.trace)
+        self._next = i + 1
+        if self._announce:
+            self._publish_gains(GAINS_LAYOUT.encode([i * self.dt, *self.k]))
+            self._announce = False
+        _, u = steps.command_of(self._command, self.step_ns, self._scratch)
+        self._publish_command(FORWARD_COMMAND_LAYOUT.encode([u]))
+        self._answered(i, began)
+
+    def _refused(self, what: str) -> None:
+        self.malformed_states += 1
+        self.get_logger().warning(f"refused a state ({what}); {self.malformed_states} so far",
+                                  throttle_duration_sec=5.0)
+
+    # --- diagnostics -----------------------------------------------------------
+    def _diagnose(self) -> None:
+        """/diagnostics: "<node>: control law" with the counts and the estimates' bounds."""
+        cp = self.cfg.adaptation
+        a = (self.a1_hat, self.a2_hat)
+        in_bounds = all(lo <= v <= hi for v, lo, hi in zip(a, cp.lower, cp.upper))
+        values = {"lifecycle": state_label(self), "states_answered": self.states_answered, "late": self.late,
+                  "malformed_states": self.malformed_states, "conflicts": self.conflicts,
+                  "a1_hat": f"{a[0]:.6g}", "a2_hat": f"{a[1]:.6g}", "estimates_in_bounds": in_bounds}
+        ok = in_bounds and not self.conflicts
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
+            name=f"{self.get_fully_qualified_name()}: control law",
+            message=(f"{state_label(self)}, {self.states_answered} answered, {self.late} late, "
+                     f"{self.malformed_states} malformed" + ("" if in_bounds else ", estimates out of bounds")),
+            hardware_id="has_control controller",
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.diagnostics_pub.publish(msg)
 
 
 def main(args=None):

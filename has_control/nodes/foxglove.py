@@ -19,6 +19,7 @@ server; the plant and controller nodes serve their own with the parameter
 from __future__ import annotations
 
 import struct
+import threading
 from typing import Callable
 
 from has_control.common.errors import HasControlError
@@ -68,12 +69,25 @@ class LiveView:
         self._context = foxglove.Context()       # its own: two views in one process stay apart
         self._schemas: dict[str, object] = {}
         self.channels: dict[str, object] = {}
+        self.subscribed = threading.Event()      # a client has subscribed to a channel
         try:
-            self.server = foxglove.start_server(name=name, host=host, port=port, context=self._context)
+            self.server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
+                                                server_listener=self)
         except RuntimeError as exc:
             reason = str(exc).removeprefix("FoxgloveError: ")
             raise HasControlError(f"{what} {port}: {reason}") from None
         self.port = self.server.port
+
+    def on_subscribe(self, client, channel) -> None:
+        """The server's listener: a client subscribed to ``channel``."""
+        self.subscribed.set()
+
+    def on_unsubscribe(self, client, channel) -> None:
+        """The server's listener: nothing to do."""
+
+    def wait_for_client(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for a client to subscribe to a channel; whether one did."""
+        return self.subscribed.wait(timeout)
 
     def channel(self, topic: str):
         """The channel of ``topic`` (a full name), created on first use."""
@@ -130,8 +144,10 @@ class LiveView:
 
 def node_tap(node, tap=None):
     """Declare ``foxglove_port`` (0: off) on ``node``; when set, serve the
-    node's published topics there. Returns (the node's tap: ``tap`` and the
-    view's sinks together, the :class:`LiveView` or None). The view closes
+    node's published topics there from a viewer process
+    (:class:`~has_control.nodes.live_process.LiveViewProcess`: the loop only
+    copies). Returns (the node's tap: ``tap`` and the view's sinks together,
+    the view or None). The view closes
     when the node's context shuts down."""
     from rcl_interfaces.msg import ParameterDescriptor
     what = f"parameter {PARAMETER} ="
@@ -144,6 +160,8 @@ def node_tap(node, tap=None):
         check_port(port, what)
     except HasControlError as exc:
         raise ValueError(f"{exc} or 0 (off)") from None
-    view = LiveView(port, name=node.get_fully_qualified_name(), what=what)
+    # lazy: live_process imports this module
+    from has_control.nodes.live_process import LiveViewProcess
+    view = LiveViewProcess(port, name=node.get_fully_qualified_name(), what=what)
     node.context.on_shutdown(lambda: view.close())     # a bound method would be held weakly
     return tee(tap, view.sink), view

@@ -43,11 +43,18 @@ differs from the model ``actuator.*``: mass, bulk_modulus, damping, leakage,
 supply_pressure, valve_gain, each defaulting to its ``actuator.*``; the valve's
 travel limit ``valve_limit`` [m] and lag ``valve_time_constant`` [s]), ``mode``, ``samples``,
 ``command_timeout`` [s], ``startup_timeout`` [s], ``failsafe_samples``, ``realtime_priority``
-(SCHED_FIFO priority, 0: normal scheduling), ``autostart`` (``main`` starts
-the first episode when a controller connects), ``keep_alive`` (``main`` keeps
-serving ``~/start`` after an episode instead of exiting), ``foxglove_port``
+(SCHED_FIFO priority, 0: normal scheduling), ``autostart`` (configure and
+activate at start-up; false: wait unconfigured for lifecycle transitions),
+``keep_alive`` (a served plant: episodes only on ``~/start``, and ``main``
+keeps serving after an episode instead of exiting), ``foxglove_port``
 (serve ``state`` and ``clock`` live on a Foxglove WebSocket at this port of
 127.0.0.1, :mod:`has_control.nodes.foxglove`; 0: off).
+
+Managed node (:mod:`has_control.nodes.managed`): ``configure`` validates the
+parameters, builds the plant's tables and creates the topics; ``activate``
+lets the loop run (``main`` starts an episode when a controller connects,
+unless ``keep_alive``; ``~/start`` is served); ``deactivate`` ends the
+episode with the valve centred; ``cleanup`` and ``shutdown`` release the topics.
 """
 from __future__ import annotations
 
@@ -58,14 +65,16 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from has_control.wire import steps
 from has_control.wire.topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
 from has_control.wire.codec import NOT_FINITE
+from has_control.common.errors import ConfigError
 from has_control.nodes.foxglove import node_tap
+from has_control.nodes.managed import refuse, AUTOSTART, bring_up, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, trigger_service
 from has_control.nodes.pacing import LoopStats, run_paced
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
@@ -80,14 +89,14 @@ OWN_PARAMETERS = (
     ("failsafe_samples", 10, "realtime: misses in a row before the valve is centred [samples]"),
     ("realtime_priority", 50, "realtime: SCHED_FIFO priority of the loop, 0..99 (0: normal scheduling)"),
     ("samples", 0, "samples per episode (0: until stopped)"),
-    ("autostart", True, "start the first episode when a controller connects"),
-    ("keep_alive", False, "keep serving ~/start after an episode"),
+    AUTOSTART,
+    ("keep_alive", False, "a served plant: episodes only on ~/start, kept serving after each"),
 )
 #: Recent samples whose applied answer is kept, to catch a second controller's late answers.
 ANSWERS_KEPT = 4096
 
 
-class PlantNode(Node):
+class PlantNode(LifecycleNode):
     def __init__(self, name: str = "plant", tap=None, **kwargs):
         """``tap(topic)``: a function taking every state and clock message published (an in-process observer)."""
         super().__init__(name, **kwargs)
@@ -95,13 +104,41 @@ class PlantNode(Node):
         declare_plant_overrides(self)
         for name, value, text in OWN_PARAMETERS:
             self.declare_parameter(name, value, ParameterDescriptor(
-                description=text, read_only=name in ("mode", "realtime_priority"),
+                description=text, read_only=name in ("mode", "realtime_priority", "autostart"),
                 additional_constraints=f"one of: {', '.join(MODES)}" if name == "mode" else ""))
-        for name in ("mode", "command_timeout", "startup_timeout", "failsafe_samples", "realtime_priority", "samples"):
-            reason = self._invalid(name, self.get_parameter(name).value)
-            if reason is not None:
-                raise ValueError(f"parameter {reason}")
-        cfg = config_from_node(self, PREFIXES)
+        self.configure_error = ""
+        self.quiet = False                        # True: no "ready"/"inactive" lines (stack drives us)
+        self.active = self.configured = False
+        self._entities: list = []
+        self.failsafe_events = 0                  # samples run with the valve centred
+        self.malformed_commands = 0
+        self.conflicts = 0                        # samples answered twice, differently
+        self.stop_on_conflict = False             # end the episode at the first one (stack does)
+        self.started_at = self.run_seconds = 0.0
+        self.finished = True
+        self._in_outage = False
+        self.log: list[tuple[int, float, float, float, float, float]] | None = None
+        self.realtime_stats: dict[str, float] = {}
+        self.run_requested = False                # realtime: start() asks the executor's owner to run
+        self._tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
+        trigger_service(self, "~/reset", self._reset_state, "plant at the initial state, sample 0, idle")
+        trigger_service(self, "~/start", self.start, "episode started")
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        if self.get_parameter("autostart").value:
+            bring_up(self)
+
+    # --- lifecycle -----------------------------------------------------------
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """Validate the parameters, build the plant's tables, create the topics."""
+        try:
+            for name in ("mode", "command_timeout", "startup_timeout", "failsafe_samples", "realtime_priority",
+                         "samples"):
+                reason = self._invalid(name, self.get_parameter(name).value)
+                if reason is not None:
+                    raise ValueError(f"parameter {reason}")
+            cfg = config_from_node(self, PREFIXES)
+        except (ConfigError, ValueError) as exc:
+            return refuse(self, exc)
         self.actuator = cfg.plant.actuator(cfg.actuator)      # this plant's own parameters
         self.ap = cfg.plant.as_array(cfg.actuator)            # ... and its valve
         self.step_s = cfg.episode.step
@@ -117,7 +154,7 @@ class PlantNode(Node):
         self._clock_msg = CLOCK_LAYOUT.buffer()
         self._scratch = steps.scratch()
         steps.warm_up()                                # compile or load the step and decoder first
-        tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
+        tap = self._tap
         self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos(CLOCK_TOPIC))
         self._publish_state = raw_publish(self.state_pub, tap)
@@ -125,23 +162,59 @@ class PlantNode(Node):
         self._command_sub = self.create_subscription(JointState, COMMAND, self._on_command, CONTROL_QOS, raw=True)
         self._command_topic = self._command_sub.topic_name
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        trigger_service(self, "~/reset", self._reset_state, "plant at the initial state, sample 0, idle")
-        trigger_service(self, "~/start", self.start, "episode started")
-        self.add_on_set_parameters_callback(self._on_set_parameters)
-        self.failsafe_events = 0                  # samples run with the valve centred
-        self.malformed_commands = 0
-        self.conflicts = 0                        # samples answered twice, differently
-        self.stop_on_conflict = False             # end the episode at the first one (stack does)
-        self.started_at = self.run_seconds = 0.0
-        self._in_outage = False
-        self.log: list[tuple[int, float, float, float, float, float]] | None = None
-        self.realtime_stats: dict[str, float] = {}
-        self.run_requested = False                # realtime: start() asks the executor's owner to run
+        self.configured = True
         self._reset_state()
+        timers = []
         if self.mode == "lockstep":
             self._watchdog = self.create_timer(max(self.timeout / 4, 0.01), self._check_deadline)
             self._last_report = (time.monotonic(), 0)
-            self.create_timer(1.0, self._report_lockstep)
+            timers = [self._watchdog, self.create_timer(1.0, self._report_lockstep)]
+        self._entities = [self._command_sub, timers, self.state_pub, self.clock_pub, self.diagnostics_pub]
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self.active = True
+        if not self.quiet:
+            self.get_logger().info(
+                f"ready: {self.mode} plant, states on {self.state_pub.topic_name}, "
+                f"commands from {self._command_topic}, step {self.step_s * 1e3:g} ms")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        """End the episode with the valve centred; take no commands."""
+        self._stop()
+        if not self.quiet:
+            self.get_logger().info(f"inactive: episode ended at sample {self.sample}, valve centred")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._stop()
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _stop(self) -> None:
+        self.active = False
+        if self.configured:
+            self.command_sample, self.command_u = self.sample, 0.0
+            if not self.finished:
+                self._finish()
+            self.run_requested = False
+
+    def _release(self) -> None:
+        """Destroy the topics and timers made by ``configure``."""
+        if self._entities:
+            sub, timers, *pubs = self._entities
+            self.destroy_subscription(sub)
+            for t in timers:
+                self.destroy_timer(t)
+            for pub in pubs:
+                self.destroy_publisher(pub)
+        self._entities = []
+        self.configured = False
 
     # --- parameters --------------------------------------------------------
     @staticmethod
@@ -179,6 +252,8 @@ class PlantNode(Node):
     # --- the hardware: state out, command in, step ----------------------------
     def _reset_state(self) -> None:
         """Back to the initial state at sample 0, idle until :meth:`start`."""
+        if not self.configured:
+            return
         self.x = self._initial_state()
         self.sample = self._first_sample = 0
         self.finished = False
@@ -196,7 +271,10 @@ class PlantNode(Node):
 
     def start(self) -> None:
         """Run an episode from the current state (lock-step: publishes it now;
-        realtime: the executor's owner runs :meth:`run_realtime`)."""
+        realtime: the executor's owner runs :meth:`run_realtime`); only when active."""
+        if not self.active:
+            self.get_logger().warning(f"~/start refused: the plant is {state_label(self)}, not active")
+            return
         self.finished = False
         self.started_at = time.perf_counter()
         self._first_sample = self.sample
@@ -249,6 +327,8 @@ class PlantNode(Node):
 
     def _on_command(self, data: bytes) -> None:
         """Read: keep the latest command; in lock-step, the awaited one advances the plant."""
+        if not self.active:
+            return
         i, u = steps.command_of(data, self.step_ns, self._scratch)
         if i < 0:
             i, u = self._decode_other_layout(data, i)
@@ -385,24 +465,30 @@ def main(args=None):
 
 
 def _serve(executor, node: PlantNode) -> None:
-    """Start when a controller connects (``autostart``) or on ``~/start``; run
-    episodes until one ends (or, with ``keep_alive``, until shutdown)."""
+    """Once active, start an episode when a controller connects (unless
+    ``keep_alive``: episodes on ``~/start`` only); run until it ends (or, with
+    ``keep_alive``, until shutdown)."""
     keep_alive = bool(node.get_parameter("keep_alive").value)
-    if node.get_parameter("autostart").value:
-        while rclpy.ok() and not node.connected():
-            executor.spin_once(timeout_sec=0.05)
-        node.get_logger().info("controller connected: starting the run")
-        node.start()
-    else:
+    if not node.active:
+        node.get_logger().info(f"unconfigured: waiting for lifecycle transitions (ros2 lifecycle set "
+                               f"{node.get_fully_qualified_name()} configure, then activate)")
+    elif keep_alive:
         node.get_logger().info("waiting for ~/start")
-    while rclpy.ok() and (keep_alive or not node.finished):
+    started = False
+    while rclpy.ok():
+        if not (keep_alive or started) and node.active and node.connected():
+            node.get_logger().info("controller connected: starting the run")
+            node.start()
+            started = True
         if node.run_requested:
             node.run_realtime(executor)
         else:
-            executor.spin_once(timeout_sec=0.1)
+            executor.spin_once(timeout_sec=0.05)
         if node.finished and node.run_seconds:
             _log_finished(node)
             node.run_seconds = 0.0
+        if started and node.finished and not keep_alive:
+            break
 
 
 def _log_finished(node: PlantNode) -> None:

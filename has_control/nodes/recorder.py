@@ -57,7 +57,9 @@ def _subscription_qos(transient_local: bool) -> QoSProfile:
 
 
 def topic_name(namespace: str, relative: str) -> str:
-    ns = namespace.rstrip("/")
+    """The absolute name of run topic ``relative`` in ``namespace`` (``sim0`` and ``/sim0/`` are ``/sim0``)."""
+    ns = namespace.strip("/")
+    ns = f"/{ns}" if ns else ""
     return f"{ns}/{relative}" if ns else f"/{relative}"
 
 

@@ -1,13 +1,17 @@
-"""Play a bag back onto the ROS graph, or replay its states to a live controller.
+"""Play a bag back onto the ROS graph, or replay its states to a controller.
 
 :func:`replay` is ``ros2 bag play`` for our bags: every message is published
 raw (the recorded CDR bytes) at its log time scaled by ``rate``, and ``/clock``
 follows the playback so nodes with ``use_sim_time`` keep time with it.
 
-:func:`replay_controller` is a regression check: it starts a controller node
+:func:`replay_controller` feeds the recorded plant states one at a time to a
+controller and compares each command it answers with the recorded one:
+either a controller node already running on the graph (``node``, e.g.
+``/sim0/controller``: reset through its ``~/reset`` first, then fed on its
+namespace's ``state`` topic; it answers with its own parameters), or (``node``
+None) a regression check of this code: a controller built in this process
 with the parameters stored in the bag (and the gains in force at the start of
-the recording), feeds it the recorded plant states one at a time, and
-compares each command it answers with the recorded one.
+the recording).
 """
 from __future__ import annotations
 
@@ -93,8 +97,10 @@ class ReplayCheck:
 
 
 def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | None = None,
-                      timeout: float = 5.0) -> ReplayCheck:
-    """Feed the recorded states to a fresh controller node; compare its commands."""
+                      timeout: float = 5.0, node: str | None = None) -> ReplayCheck:
+    """Feed the recorded states to the running controller node ``node`` (its
+    fully qualified name) or, None, to a controller built here from the bag's
+    parameters; compare its commands with the recorded ones."""
     from has_control.config import config_parameters
     from has_control.nodes.controller_node import ControllerNode
     bag = read_bag(path)
@@ -114,10 +120,14 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
         pass                                          # the stored parameters' gains
     n = min(len(states), len(recorded_u))
     with borrowed_context(context) as context:
-        ns = "/replay"
-        controller = ControllerNode(namespace=ns, context=context, parameter_overrides=[
-            Parameter(k, value=v) for k, v in params.items()] + [Parameter("publish_internals", value=False)])
-        driver = rclpy.create_node("replay_driver", namespace=ns, context=context)
+        if node is None:
+            ns = "/replay"
+            controller = ControllerNode(namespace=ns, context=context, parameter_overrides=[
+                Parameter(k, value=v) for k, v in params.items()] + [Parameter("publish_internals", value=False)])
+        else:
+            node = "/" + node.strip("/")
+            ns, controller = node.rsplit("/", 1)[0], None
+        driver = rclpy.create_node("replay_driver", namespace=ns or "/", context=context)
         answers: dict[int, float] = {}
         step_ns = int(round(cfg.episode.step * 1e9))
         pub = driver.create_publisher(JointState, "state", CONTROL_QOS)
@@ -125,12 +135,15 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
                                    lambda m: answers.__setitem__(sample_of(m.header.stamp, step_ns),
                                                                  m.position[0]), CONTROL_QOS)
         ex = EventsExecutor(context=context)
-        ex.add_node(controller)
+        if controller is not None:
+            ex.add_node(controller)
         ex.add_node(driver)
+        if node is not None:
+            _reset(ex, driver, node)
         end = time.monotonic() + 10.0
-        while not (pub.get_subscription_count() and controller.command_pub.get_subscription_count()):
+        while not (pub.get_subscription_count() and driver.count_publishers(f"{ns}/command")):
             if time.monotonic() > end:
-                raise BagError("replay: the controller did not connect within 10 s")
+                raise BagError(f"replay: the controller {node or 'built from the bag'} did not connect within 10 s")
             ex.spin_once(timeout_sec=0.01)
         idx = cdr.stamps_ns([d for _, d in states[:n]]) // step_ns
         diffs = np.full(n, np.inf)
@@ -143,8 +156,26 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
             if i in answers:
                 diffs[k] = abs(answers.pop(i) - recorded_u[k])
         ex.shutdown()
-        controller.destroy_node()
+        if controller is not None:
+            controller.destroy_node()
         driver.destroy_node()
     bad = np.flatnonzero(~(diffs <= tolerance))
     return ReplayCheck(n, int(bad.size), float(diffs.max()) if n else 0.0,
                        int(bad[0]) if bad.size else None)
+
+
+def _reset(ex, driver, node: str) -> None:
+    """The running controller ``node`` back to â(0) through its ``~/reset``
+    (BagError, one line, when there is no such node)."""
+    from std_srvs.srv import Trigger
+    client = driver.create_client(Trigger, f"{node}/reset")
+    end = time.monotonic() + 10.0
+    while not client.service_is_ready():
+        if time.monotonic() > end:
+            raise BagError(f"replay: no controller node {node} (no {node}/reset service within 10 s)")
+        ex.spin_once(timeout_sec=0.05)
+    future = client.call_async(Trigger.Request())
+    while not future.done():
+        if time.monotonic() > end + 10.0:
+            raise BagError(f"replay: {node}/reset did not answer")
+        ex.spin_once(timeout_sec=0.05)

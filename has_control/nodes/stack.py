@@ -21,6 +21,7 @@ from rclpy.parameter import Parameter
 from has_control.core.cost import Score, score_arrays
 from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
+from has_control.nodes.managed import bring_up
 from has_control.nodes.runtime import borrowed_context, tee
 from has_control.nodes.plant_node import PlantNode
 from has_control.wire import cdr
@@ -70,7 +71,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
               domain_id: int | None = None, record: str | Path | None = None,
               realtime: bool = False, priority: int = 50,
               progress: Callable[[int, int, float], None] | None = None,
-              foxglove: int | None = None) -> StackRun:
+              foxglove: int | None = None, foxglove_wait: float = 0.0,
+              announce: Callable[[str], None] | None = None) -> StackRun:
     """Run one episode through plant and controller nodes composed in this
     process (the ros2_control layout), lock-step or, with ``realtime``, paced
     to wall time (SCHED_FIFO at ``priority`` where permitted).
@@ -79,16 +81,23 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     the bytes the nodes publish (the controller then publishes its internals,
     which the bag needs for scoring). ``progress(samples done, samples,
     samples/s)`` is called about once a second. ``foxglove``: also serve the
-    run's topics live on a Foxglove WebSocket at this port of 127.0.0.1
-    (:class:`~has_control.nodes.foxglove.LiveView`) for the run.
+    run's topics live on a Foxglove WebSocket at this port of 127.0.0.1 for the
+    run, from a viewer process (:class:`~has_control.nodes.live_process.LiveViewProcess`:
+    the loop only copies each message into a ring); ``announce(line)`` hears its
+    URL before the run starts, and the run waits up to ``foxglove_wait`` seconds
+    for a client to subscribe.
     """
     from has_control.config import build_config
     cfg = cfg or Config()
+    namespace = normalise_namespace(namespace)
     if gains is not None:
         cfg = build_config({"gains.k1": float(gains[0]), "gains.k2": float(gains[1]),
                             "gains.k3": float(gains[2])}, source="--gains", base=cfg)
     with borrowed_context(context, args=args, domain_id=domain_id) as context, _live_view(foxglove) as live:
         t0 = time.perf_counter()
+        if live is not None and announce is not None:
+            announce(f"serving live on ws://127.0.0.1:{live.port} (Foxglove: open a WebSocket connection; "
+                     "layout config/foxglove/has_control.json)")
         params = _overrides(cfg)
         n = cfg.episode.samples
         recorder = executor = None
@@ -100,14 +109,17 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 recorder = Recorder(namespace=namespace, subscribe=False, process=True)
                 recorder.open(record, cfg)
             tap = tee(recorder and recorder.sink, live and live.sink)
+            managed = Parameter("autostart", value=False)           # the transitions are driven here
             plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
                 params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
-                           Parameter("mode", value="realtime" if realtime else "lockstep")])
+                           Parameter("mode", value="realtime" if realtime else "lockstep"), managed])
             nodes.append(plant)
             internals = publish_internals or record is not None
             controller = ControllerNode(namespace=namespace, context=context, tap=tap, parameter_overrides=params + [
-                Parameter("publish_internals", value=internals)])
+                Parameter("publish_internals", value=internals), managed])
             nodes.append(controller)
+            for node in (plant, controller):     # unconfigured -> inactive -> active
+                _bring_up(node)
             controller.record_trace(n)
             if realtime:
                 plant.log = []                 # the command each sample ran with (held ones included)
@@ -115,6 +127,10 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             for node in nodes:
                 executor.add_node(node)
             _wait_for_match(executor, plant, controller)
+            if live is not None and foxglove_wait > 0:
+                if announce is not None:
+                    announce(f"waiting up to {foxglove_wait:g} s for a Foxglove client")
+                live.wait_for_client(foxglove_wait)
             plant.stop_on_conflict = True        # a run with a stranger in it is over: fail it now
 
             def stop_if_conflicts() -> None:
@@ -173,14 +189,30 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         return run
 
 
+def normalise_namespace(namespace: str | None) -> str:
+    """A namespace as ROS resolves it: ``sim0`` → ``/sim0``; '' or '/' → '' (the root)."""
+    namespace = (namespace or "").strip("/")
+    return f"/{namespace}" if namespace else ""
+
+
+def _bring_up(node) -> None:
+    """Configure and activate ``node``; a refusal is one line naming it."""
+    from has_control.common.errors import HasControlError
+    node.quiet = True                            # the stack's own lines say what runs
+    try:
+        bring_up(node)
+    except ValueError as exc:
+        raise HasControlError(f"{node.get_fully_qualified_name()}: {exc}") from None
+
+
 def _live_view(port: int | None):
     """The Foxglove live view on ``port`` (None: none). Opened before the bag, so
     a port in use ends the run before a bag exists; closed with the run."""
     if port is None:
         from contextlib import nullcontext
         return nullcontext()
-    from has_control.nodes.foxglove import LiveView
-    return LiveView(port)
+    from has_control.nodes.live_process import LiveViewProcess
+    return LiveViewProcess(port)
 
 
 def _refuse_strangers(plant, controller) -> None:
@@ -289,19 +321,20 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
                      namespaces: list[str] | None = None, record: str | None = None,
                      validate_best: bool = True, context: rclpy.Context | None = None,
                      domain_id: int | None = None, timeout: float = 3600.0, log_every: int = 1,
-                     scenarios: str | None = None, aggregate: str = "mean") -> dict:
+                     scenarios: str | None = None, aggregate: str = "mean", keep_episodes: bool = False) -> dict:
     """Plant and controller (one pair per namespace) and the tuner node in one
     process on the EventsExecutor; returns the tuner's result dict.
 
     ``changes``: swarm settings (seed, particles, iterations, variant) over
-    config/tuner.yaml and ``config_files``. ``scenarios``: a scenario file
+    config/tuner.yaml and ``config_files``. ``keep_episodes``: keep one bag per
+    graph episode under ``record/episodes``. ``scenarios``: a scenario file
     (robust tuning, batch evaluator) scored by ``aggregate``.
     """
     from has_control.tuning.tuner import load_tuning
     from has_control.tuning.tuner import tuning_parameters
     from has_control.nodes.tuner_node import TunerNode
     tuning = load_tuning(config_files).replace(**changes)
-    namespaces = namespaces or [""]
+    namespaces = [normalise_namespace(ns) for ns in namespaces or [""]]
     with borrowed_context(context, domain_id=domain_id) as context:
         model = _overrides(cfg)
         nodes = []
@@ -313,7 +346,7 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
             Parameter("evaluator", value=evaluator), Parameter("lanes", value=list(namespaces)),
             Parameter("validate_best", value=validate_best), Parameter("record", value=record or ""),
             Parameter("log_every", value=log_every), Parameter("scenarios", value=str(scenarios or "")),
-            Parameter("aggregate", value=aggregate)])
+            Parameter("aggregate", value=aggregate), Parameter("keep_episodes", value=keep_episodes)])
         nodes.append(tuner)
         executor = EventsExecutor(context=context)
         for node in nodes:

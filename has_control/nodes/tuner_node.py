@@ -27,8 +27,10 @@ session bag ``record/session``, the best gains as a ``--params-file``
 ``record/episodes``; empty: episodes go to a temporary
 directory), ``resume`` (a directory of an interrupted session),
 ``episode_timeout`` [s of wall time], ``log_every`` (log every n-th iteration).
-Topic ``~/progress`` (std_msgs/Float64MultiArray): [iteration, best J,
-k1, k2, k3, evaluations, elapsed s], once per iteration.
+Topic ``~/progress`` (std_msgs/Float64MultiArray, its dimension labelled
+with the columns of :data:`has_control.wire.topics.PROGRESS_COLUMNS`):
+[iteration, best J, k1, k2, k3 [1/s], evaluations, elapsed [s], ETA [s]],
+once per iteration.
 """
 from __future__ import annotations
 
@@ -42,21 +44,72 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
+from rcl_interfaces.msg import ParameterDescriptor
 
 from has_control.bag import BagError, score_bag
 from has_control.common.errors import ConfigError, HasControlError
+from has_control.core.episode import simulate
 from has_control.tuning.swarm import Swarm
 from has_control.tuning.tuner import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 from has_control.nodes.recorder import Recorder
+from has_control.wire.topics import PROGRESS_LAYOUT
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.", "plant.", "noise.")
 EVALUATORS = ("graph", "batch")
+#: What each swarm.* parameter means (config/tuner.yaml; SPEC §7).
+SWARM_PARAMETERS = {
+    "swarm.variant": "pso | pso-cp | pso-cp-tvac (SPEC §7)",
+    "swarm.seed": "seed of every random draw of the swarm",
+    "swarm.particles": "N, particles per iteration",
+    "swarm.iterations": "MAXITER, iterations",
+    "swarm.target": "stop when the best J <= target",
+    "swarm.lower": "x_min of (k1, k2, k3) [1/s]",
+    "swarm.upper": "x_max of (k1, k2, k3) [1/s]",
+    "swarm.velocity_limit": "v_max of a particle per iteration (v_min = -v_max) [1/s]",
+    "swarm.inertia_max": "omega_max, inertia weight at the first iteration",
+    "swarm.inertia_min": "omega_min, inertia weight at the last iteration",
+    "swarm.c1": "cognitive acceleration c1 (PSO, PSO+CP)",
+    "swarm.c2": "social acceleration c2 (PSO, PSO+CP)",
+    "swarm.c1_start": "TVAC: c1 at the first iteration",
+    "swarm.c1_end": "TVAC: c1 at the last iteration",
+    "swarm.c2_start": "TVAC: c2 at the first iteration",
+    "swarm.c2_end": "TVAC: c2 at the last iteration",
+    "swarm.crazy_redraw": "positive: U(0, v_max) (paper Eq. 37) | symmetric: U(-v_max, v_max)",
+    "swarm.crazy_probability": "exp-difference: w_min*exp(w - w_max) (SPEC) | exp-ratio: w_min*exp(-w/w_max)",
+}
+#: The tuner's own parameters: (name, default, meaning and unit).
+OWN_PARAMETERS = (
+    ("scenarios", "", "robust tuning: a scenario file scored by the batch evaluator (empty: the nominal episode)"),
+    ("aggregate", "mean", "robust tuning: mean | max | cvar:alpha of the scenarios' J"),
+    ("evaluator", "batch", "batch (in-process, fast) | graph (every candidate through the lanes' nodes)"),
+    ("validate_best", True, "re-run the best gains through the graph, recorded and scored from the bag"),
+    ("lanes", [""], "namespaces of the plant/controller pairs ('' is the root)"),
+    ("controller", "controller", "the controller's node name within a lane"),
+    ("plant", "plant", "the plant's node name within a lane"),
+    ("record", "", "a directory: the session bag, gains.yaml and (graph) one bag per episode; empty: none kept"),
+    ("resume", "", "a directory of an interrupted session to resume"),
+    ("episode_timeout", 120.0, "graph: an episode not finished after this long scores +inf [s of wall time]"),
+    ("log_every", 1, "log every n-th iteration"),
+    ("keep_episodes", False, "graph: keep one bag per episode under record/episodes (default: scored, then deleted)"),
+    ("autostart", True, "tune at start-up and exit when done (false: wait for ~/start, serve until shut down)"),
+    ("lane_timeout", 30.0, "wait this long for the lanes' plant and controller [s]; with evaluator batch they "
+     "are optional (the best gains are set on them if found)"),
+)
+#: Bytes a recorded episode takes per sample (state, command, clock, reference, internals, each with
+#: its MCAP record header): the estimate logged before a graph tuning.
+BAG_BYTES_PER_SAMPLE = 246
+
+
+class Cancelled(Exception):
+    """``~/cancel`` was called: the session stops at the next episode or iteration."""
 
 
 def _wait(future, timeout: float, what: str):
@@ -72,7 +125,8 @@ class Lane:
     """One plant/controller pair in ``namespace``, driven through services."""
 
     def __init__(self, node: "TunerNode", namespace: str, controller: str, plant: str, y_limit: float):
-        ns = namespace.rstrip("/")
+        ns = namespace.strip("/")
+        ns = f"/{ns}" if ns else ""                # sim0 is /sim0, as ROS resolves it
         self.namespace = ns or "/"
         self.controller_name, self.plant_name = f"{ns}/{controller}", f"{ns}/{plant}"
         self.controller_params = AsyncParameterClient(node, self.controller_name)
@@ -82,6 +136,29 @@ class Lane:
         self.plant_start = node.create_client(Trigger, f"{self.plant_name}/start")
         self.recorder = Recorder(node, ns, y_limit=y_limit)
         self.logger = node.get_logger()
+        self.lifecycle = {name: (node.create_client(GetState, f"{name}/get_state"),
+                                 node.create_client(ChangeState, f"{name}/change_state"))
+                          for name in (self.plant_name, self.controller_name)}
+        self.up: set[str] = set()
+
+    def bring_up(self) -> None:
+        """Configure and activate the lane's managed nodes that are not active yet
+        (a plant or controller started with ``autostart: false``)."""
+        for name, (get, change) in self.lifecycle.items():
+            if name in self.up or not get.service_is_ready():
+                continue
+            label = _wait(get.call_async(GetState.Request()), 10.0, get.srv_name).current_state.label
+            for before, transition in (("unconfigured", Transition.TRANSITION_CONFIGURE),
+                                       ("inactive", Transition.TRANSITION_ACTIVATE)):
+                if label == before:
+                    request = ChangeState.Request()
+                    request.transition.id = transition
+                    if not _wait(change.call_async(request), 60.0, change.srv_name).success:
+                        raise HasControlError(f"{name}: refused the transition from {before} (see its log)")
+                    self.logger.info(f"{name}: {before} -> {'inactive' if before == 'unconfigured' else 'active'}")
+                    label = "inactive" if before == "unconfigured" else "active"
+            if label == "active":
+                self.up.add(name)
 
     def ready(self) -> bool:
         return (self.controller_params.services_are_ready() and self.plant_params.services_are_ready()
@@ -148,18 +225,9 @@ class TunerNode(Node):
         declare_config(self, PREFIXES)
         declare_plant_overrides(self)                 # plant.mass etc.: the plant's, as the plant node has them
         for key, value in tuning_parameters(load_tuning()).items():
-            self.declare_parameter(key, value)
-        self.declare_parameter("scenarios", "")
-        self.declare_parameter("aggregate", "mean")
-        self.declare_parameter("evaluator", "batch")
-        self.declare_parameter("validate_best", True)
-        self.declare_parameter("lanes", [""])
-        self.declare_parameter("controller", "controller")
-        self.declare_parameter("plant", "plant")
-        self.declare_parameter("record", "")
-        self.declare_parameter("resume", "")
-        self.declare_parameter("episode_timeout", 120.0)
-        self.declare_parameter("log_every", 1)
+            self.declare_parameter(key, value, ParameterDescriptor(description=SWARM_PARAMETERS.get(key, key)))
+        for key, value, text in OWN_PARAMETERS:
+            self.declare_parameter(key, value, ParameterDescriptor(description=text))
         self.cfg = config_from_node(self, PREFIXES)
         self.tuning = self._tuning()
         self.evaluator = self.get_parameter("evaluator").value
@@ -173,7 +241,40 @@ class TunerNode(Node):
         self.result: dict | None = None
         self.error: str | None = None
         self.done = threading.Event()
+        self.done.set()                               # no session running
         self._thread: threading.Thread | None = None
+        self._cancel = threading.Event()
+        self.status = "idle: call ~/start"
+        self.create_service(Trigger, "~/start", self._on_start)
+        self.create_service(Trigger, "~/cancel", self._on_cancel)
+        self.create_service(Trigger, "~/status", self._on_status)
+
+    def _on_start(self, request, response):
+        response.success = self.done.is_set()
+        response.message = "session started" if response.success else f"busy: {self.status}"
+        if response.success:
+            self.start()
+        return response
+
+    def _on_cancel(self, request, response):
+        response.success = not self.done.is_set()
+        response.message = "cancelling at the next episode" if response.success else f"nothing to cancel: {self.status}"
+        if response.success:
+            self._cancel.set()
+        return response
+
+    def _on_status(self, request, response):
+        response.success = True
+        response.message = self.status
+        return response
+
+    def _check_cancel(self) -> None:
+        if self._cancel.is_set():
+            raise Cancelled()
+
+    @property
+    def lane_timeout(self) -> float:
+        return float(self.get_parameter("lane_timeout").value)
 
     def _tuning(self) -> Tuning:
         flat = {f"swarm.{k}": p.value for k, p in self.get_parameters_by_prefix("swarm").items()}
@@ -198,29 +299,49 @@ class TunerNode(Node):
     # --- session -------------------------------------------------------------
     def start(self) -> None:
         """Run the session in a thread of its own (the executor keeps spinning)."""
+        self.done.clear()
+        self._cancel.clear()
+        self.result = self.error = None
+        self.status = "running: starting"
         self._thread = threading.Thread(target=self._guarded, name="tuner-session", daemon=True)
         self._thread.start()
 
     def _guarded(self) -> None:
         try:
             self.result = self.run_session()
+            self.status = f"finished: best k = {tuple(round(k, 2) for k in self.result['gains'])}, J = " \
+                          f"{self.result['J']:.6e}"
+        except Cancelled:
+            self.status = "cancelled"
+            self.get_logger().warning("session cancelled (~/cancel); a recorded one resumes with resume:=DIR")
         except HasControlError as exc:
             self.error = str(exc)
+            self.status = f"failed: {self.error}"
             self.get_logger().error(self.error)
         except Exception as exc:                 # a bug, not bad input: keep its type in the report
             self.error = f"{type(exc).__name__}: {exc}"
+            self.status = f"failed: {self.error}"
             self.get_logger().error(f"tuning session failed: {self.error}")
         finally:
             self.done.set()
 
-    def wait_for_lanes(self, timeout: float = 30.0) -> None:
+    def wait_for_lanes(self, timeout: float | None = None, required: bool = True) -> bool:
+        """Wait for every lane's plant and controller (bringing managed ones up);
+        False if they are not all there in ``timeout`` and not ``required``."""
+        timeout = float(self.get_parameter("lane_timeout").value) if timeout is None else timeout
         end = time.monotonic() + timeout
         while not all(lane.ready() for lane in self.lanes):
+            self._check_cancel()
+            for lane in self.lanes:
+                lane.bring_up()
             if time.monotonic() > end:
+                if not required:
+                    return False
                 missing = [lane.namespace for lane in self.lanes if not lane.ready()]
                 raise HasControlError(f"lanes {missing}: plant, controller (and their services) not found "
                                       f"within {timeout:g} s")
             time.sleep(0.01)
+        return True
 
     def run_session(self) -> dict:
         """The session (the same runner as ``has-control tune``), candidates scored
@@ -237,28 +358,44 @@ class TunerNode(Node):
         every = max(1, int(self.get_parameter("log_every").value))
         used: dict = {}
 
+        def lanes_up() -> bool:                   # with evaluator batch, lanes are optional
+            return used.get("lanes", True)
+
         def make_objective(cfg):
             used["cfg"] = cfg
-            self.wait_for_lanes()
+            graph = self.evaluator == "graph"
+            used["lanes"] = self.wait_for_lanes(None if graph else min(5.0, self.lane_timeout), required=graph)
+            if not used["lanes"]:
+                log.info("no plant/controller lanes found: the batch evaluator alone, validation in-process; "
+                         "the best gains are set on no controller")
+                return None
             n = cfg.episode.samples
             for lane in self.lanes:
                 reason = lane.set_parameters(lane.plant_params, [Parameter("samples", value=n)], lane.plant_name)
                 if reason:
                     raise HasControlError(f"{lane.plant_name} rejected samples = {n}: {reason}")
-            if self.evaluator != "graph":
+            if not graph:
                 return None
             directory = resume_dir or record
-            episodes = Path(directory) / "episodes" if directory else scratch
-            return self._graph_objective(cfg, episodes, timeout, keep=bool(directory))
+            keep = bool(directory) and bool(self.get_parameter("keep_episodes").value)
+            episodes = Path(directory) / "episodes" if keep else scratch
+            self._announce_graph(cfg, keep, episodes)
+            return self._graph_objective(cfg, episodes, timeout, keep=keep)
 
         def on_iteration(sw: Swarm) -> None:
             k = sw.gbest_x
-            self.progress_pub.publish(Float64MultiArray(data=[
-                float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations),
-                time.perf_counter() - t0]))
+            elapsed = time.perf_counter() - t0
+            done = max(sw.iteration, 1)
+            eta = elapsed / done * max(sw.settings.iterations - sw.iteration, 0)
+            self.status = (f"running: iteration {sw.iteration}/{sw.settings.iterations}, best J = {sw.gbest_f:.6e}, "
+                           f"ETA {eta:.0f} s")
+            self.progress_pub.publish(PROGRESS_LAYOUT.encode([
+                float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations), elapsed, eta]))
             if sw.iteration % every == 0 or sw.done:
                 log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
-                         f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")
+                         f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations, "
+                         f"ETA {eta:.0f} s")
+            self._check_cancel()
 
         def record_validation(gains, writer, cfg) -> None:     # through the graph, into the session bag
             self.lanes[0].run(gains, cfg, writer.path, timeout, writer=writer, prefix="/validation")
@@ -266,14 +403,25 @@ class TunerNode(Node):
         try:
             run = run_session(self.cfg, self.tuning, record, resume_dir=resume_dir, evaluator=self.evaluator,
                               make_objective=make_objective, on_iteration=on_iteration,
-                              record_validation=record_validation if validate else None,
+                              record_validation=record_validation if validate and lanes_up() else None,
                               announce=log.info, on_warning=log.warning)
             res, out, best = run.result, dict(run.out), run.result.gains
+            out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes] if lanes_up() else [])
+            if not lanes_up():
+                if validate:
+                    validation = simulate(used["cfg"], best).score
+                    out["validation"] = validation.as_json()
+                    out["validation_bag"] = None
+                    log.info(f"validated k = ({best[0]:.2f}, {best[1]:.2f}, {best[2]:.2f}) in-process: "
+                             f"J = {validation.J:.6e}")
+                if run.directory:
+                    out["gains_file"] = str(run.directory / "gains.yaml")
+                out["controller_gains"] = None
+                return out
             for lane in self.lanes:
                 reason = lane.set_gains(best)
                 if reason:
                     raise HasControlError(f"{lane.controller_name} rejected the best gains {best}: {reason}")
-            out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes])
             if validate:
                 bag = run.bag
                 if bag is None:
@@ -291,6 +439,21 @@ class TunerNode(Node):
         finally:
             shutil.rmtree(scratch, ignore_errors=True)
 
+    def _announce_graph(self, cfg, keep: bool, episodes: Path) -> None:
+        """Before a graph tuning: how many episodes, how long (from a lock-step rate
+        of 1 000–20 000 samples/s per lane), and what the bags take."""
+        t = self.tuning.swarm
+        count = t.particles * t.iterations
+        samples = cfg.episode.samples
+        lanes = len(self.lanes)
+        per_bag = samples * BAG_BYTES_PER_SAMPLE
+        fast, slow = (count * samples / lanes / rate for rate in (20_000.0, 1_000.0))
+        self.get_logger().info(
+            f"graph tuning: {count} episodes of {samples} samples over {lanes} lane(s), about "
+            f"{_duration(fast)} to {_duration(slow)}; each episode's bag ~{per_bag / 1e6:.1f} MB, "
+            + (f"kept under {episodes} ({count * per_bag / 1e9:.2f} GB in all)" if keep
+               else "scored then deleted (keep_episodes:=true keeps them)") + "; ~/progress shows the ETA")
+
     def _graph_objective(self, cfg, episodes: Path, timeout: float, keep: bool):
         free: queue.Queue[Lane] = queue.Queue()
         for lane in self.lanes:
@@ -300,6 +463,7 @@ class TunerNode(Node):
 
         def one(args) -> float:
             i, gains = args
+            self._check_cancel()
             lane = free.get()
             try:
                 bag = episodes / f"batch{batch[0]:04d}_candidate{i:03d}"
@@ -317,14 +481,25 @@ class TunerNode(Node):
         return objective
 
 
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
+
+
 def main(args=None):
     from has_control.nodes.runtime import node_main, spin
     failed = []
 
     def serve(executor, node: TunerNode) -> None:
-        node.start()
-        spin(executor, done=node.done.is_set)
-        failed.append(bool(node.error))
+        if node.get_parameter("autostart").value:
+            node.start()
+            node.get_logger().info("ready: tuning (~/cancel stops it, ~/status tells)")
+            spin(executor, done=node.done.is_set)
+            failed.append(bool(node.error))
+        else:
+            node.get_logger().info("ready: call ~/start to tune (~/cancel, ~/status)")
+            spin(executor)
     node_main(args, TunerNode, serve)
     if any(failed):
         raise SystemExit(2)

@@ -62,6 +62,11 @@ CLOCK_LAYOUT = codec.clock_layout()
 CONTROLLER_STATE_LAYOUT = codec.float64_array_layout(CONTROLLER_STATE_COLUMNS)
 REFERENCE_LAYOUT = codec.float64_array_layout(REFERENCE_COLUMNS)
 GAINS_LAYOUT = codec.float64_array_layout(GAINS_COLUMNS)
+#: The tuner's ~/progress: iteration, best J, gains [1/s], evaluations, elapsed [s], ETA [s].
+PROGRESS_COLUMNS = ("iteration", "best_J", "k1", "k2", "k3", "evaluations", "elapsed_s", "eta_s")
+PROGRESS_LAYOUT = codec.float64_array_layout(PROGRESS_COLUMNS)
+#: ros2_control: the valve command ``[u]`` [m] a forward_command_controller takes.
+FORWARD_COMMAND_LAYOUT = codec.float64_array_layout(tuple(COMMAND_NAMES))
 
 #: The layout of each run topic (by relative name).
 LAYOUTS = {STATE: STATE_LAYOUT, COMMAND: COMMAND_LAYOUT, CLOCK_TOPIC: CLOCK_LAYOUT,

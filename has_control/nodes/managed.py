@@ -1,0 +1,53 @@
+"""The managed-node (``rclpy.lifecycle``) conventions the plant and controller share.
+
+unconfigured → ``configure`` (validate the parameters, build the tables, create
+the topics) → inactive → ``activate`` (start answering / start the loop) →
+active; ``deactivate`` centres the valve and stops; ``cleanup`` and
+``shutdown`` release the topics and tables. The transitions are the standard
+``lifecycle_msgs`` services (``~/change_state``, ``~/get_state``: what
+``ros2 lifecycle set`` calls). With the parameter ``autostart`` (default
+true) a node configures and activates itself at start-up, today's
+one-command behaviour; with ``autostart: false`` it waits, unconfigured, for
+an operator, a launch file's lifecycle manager or ``has-control stack``.
+"""
+from __future__ import annotations
+
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.lifecycle import TransitionCallbackReturn
+
+AUTOSTART = ("autostart", True, "configure and activate at start-up (false: wait unconfigured for "
+             "lifecycle transitions, e.g. ros2 lifecycle set NODE configure)")
+
+
+def declare_autostart(node, text: str = AUTOSTART[2]) -> bool:
+    """Declare ``autostart`` (read-only) on ``node``; its value."""
+    return bool(node.declare_parameter(AUTOSTART[0], AUTOSTART[1],
+                                       ParameterDescriptor(description=text, read_only=True)).value)
+
+
+def bring_up(node) -> None:
+    """Configure and activate ``node`` in this thread; a configuration it
+    refuses raises ValueError with its reason (one line; the node does not log it as well)."""
+    node.bringing_up = True
+    try:
+        configured = node.trigger_configure()
+    finally:
+        node.bringing_up = False
+    if configured != TransitionCallbackReturn.SUCCESS:
+        raise ValueError(node.configure_error or f"{node.get_fully_qualified_name()}: configure failed")
+    if node.trigger_activate() != TransitionCallbackReturn.SUCCESS:
+        raise ValueError(f"{node.get_fully_qualified_name()}: activate failed")
+
+
+def refuse(node, exc: Exception) -> TransitionCallbackReturn:
+    """``configure`` refused for ``exc``: its first line kept as ``node.configure_error``,
+    logged unless :func:`bring_up` raises it anyway."""
+    node.configure_error = str(exc).splitlines()[0]
+    if not getattr(node, "bringing_up", False):
+        node.get_logger().error(f"configure refused: {node.configure_error}")
+    return TransitionCallbackReturn.FAILURE
+
+
+def state_label(node) -> str:
+    """The node's lifecycle state: 'unconfigured', 'inactive', 'active', 'finalized'."""
+    return node._state_machine.current_state[1]
