@@ -8,6 +8,7 @@ import re
 from contextlib import nullcontext
 
 from has_control.common.errors import HasControlError
+from has_control.common.files import check_output
 from has_control.config import check_gain, finite_number, load_config, with_horizon
 from has_control.core.params import Config
 
@@ -83,15 +84,36 @@ def port(text: str) -> int:
     return v
 
 
+def output_file(text: str) -> str:
+    """An argparse type: a file the command will write, checked before the
+    work (:func:`has_control.common.files.check_output`: a new path or a
+    regular file, or a link to one, in a writable directory)."""
+    try:
+        check_output(text, "file")
+    except HasControlError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def output_dir(text: str) -> str:
+    """An argparse type: a directory the command will write into, checked before the work."""
+    try:
+        check_output(text, "directory")
+    except HasControlError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def figure_path(text: str) -> str:
-    """An argparse type: a figure file whose format matplotlib writes (checked before the run)."""
+    """An argparse type: a figure file whose format matplotlib writes, in a
+    place :func:`output_file` accepts (both checked before the run)."""
     # lazy: matplotlib takes about 1 s to load; only commands given a figure need it
     from has_control.plots.figures import figure_format
     try:
         figure_format(text)
     except HasControlError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
+    return output_file(text)
 
 
 def dask_spec(text: str) -> str:

@@ -20,6 +20,7 @@ The robust cost over a scenario set is :mod:`has_control.core.scenarios`'.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -75,7 +76,8 @@ def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenar
     for name, body in named.items():
         if body is not None and not isinstance(body, Mapping):
             raise ConfigError(f"{path}: scenario {name}: expected a mapping of overrides")
-        out.append(Scenario(str(name), _overrides(flatten(body or {}), path, str(name))))
+        flat = flatten(body or {}, where=f"{path}: scenario {name}")
+        out.append(Scenario(str(name), _overrides(flat, path, str(name))))
     if "random" in doc:
         out.extend(_draws(doc["random"], path))
     if not out:
@@ -117,8 +119,8 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     prefix = spec.get("prefix", "random")
     if not isinstance(prefix, str) or not prefix:
         raise ConfigError(f"{where}.prefix = {shown(prefix)}: expected a name (the draws are PREFIX-000, ...)")
-    ranges = flatten(spec.get("ranges") or {}) if isinstance(spec.get("ranges") or {}, Mapping) else None
-    fixed = flatten(spec.get("set") or {}) if isinstance(spec.get("set") or {}, Mapping) else None
+    ranges, fixed = (flatten(spec.get(k) or {}, where=f"{where}.{k}") if isinstance(spec.get(k) or {}, Mapping)
+                     else None for k in ("ranges", "set"))
     if ranges is None or fixed is None:
         raise ConfigError(f"{where}: ranges and set are mappings of keys")
     _overrides(fixed, path, f"{prefix}-*")
@@ -127,10 +129,11 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     for key in sorted(ranges):
         r = ranges[key]
         ok = isinstance(r, (list, tuple)) and len(r) == 2 and all(
-            not isinstance(finite_number(v), str) for v in r) and r[0] <= r[1]
+            not isinstance(finite_number(v), str) for v in r) and r[0] <= r[1] and math.isfinite(
+            float(r[1]) - float(r[0]))
         if not ok:
             raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: expected [low, high], "
-                              "two finite numbers, low <= high")
+                              "two finite numbers, low <= high, high - low finite")
         if key in _INTEGER_KEYS and not all(is_seed(v) for v in r):
             raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: a seed's range is two whole numbers >= 0")
         bounds[key] = r
