@@ -33,6 +33,7 @@ from has_control.config.params_file import MAX_CONFIG_BYTES
 from has_control.config.schema import build_config, finite_number, is_seed
 from has_control.config.yaml_safe import flatten, load_yaml
 from has_control.core.params import Config
+from has_control.core.reference import check_road_memory
 
 #: What a scenario may set: the world, not the controller.
 SCENARIO_PREFIXES = ("plant.", "noise.", "reference.")
@@ -89,8 +90,8 @@ def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenar
     if dup is not None:
         raise ConfigError(f"{path}: scenario {dup}: named twice")
     base = base or Config()
-    for s in out:
-        s.config(base, source=f"{path}: scenario {s.name}")
+    cfgs = [s.config(base, source=f"{path}: scenario {s.name}") for s in out]
+    check_road_memory([(c.reference, c.episode) for c in cfgs], str(path))
     return tuple(out)
 
 
