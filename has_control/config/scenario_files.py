@@ -57,8 +57,43 @@ class Scenario:
         return {"name": self.name, "overrides": dict(self.overrides)}
 
 
-def scenarios_from_json(items: Sequence[Mapping]) -> tuple[Scenario, ...]:
-    return tuple(Scenario(str(d["name"]), tuple((str(k), v) for k, v in d["overrides"].items())) for d in items)
+def scenarios_from_json(items: Sequence[Mapping], where: str = "scenarios") -> tuple[Scenario, ...]:
+    """Scenarios stored as JSON (a session's settings): a list of {name, overrides}; one line naming
+    ``where`` if they are anything else. Check them with :func:`check_scenarios`."""
+    if not isinstance(items, list):
+        raise ConfigError(f"{where}: expected a list of scenarios, not {shown(items)}")
+    out = []
+    for d in items:
+        if (not isinstance(d, Mapping) or set(d) != {"name", "overrides"} or not isinstance(d["name"], str)
+                or not isinstance(d["overrides"], Mapping)):
+            raise ConfigError(f"{where}: {shown(d)}: expected {{name: NAME, overrides: {{KEY: VALUE, ...}}}}")
+        bad = next((k for k, v in d["overrides"].items() if isinstance(v, (dict, Mapping))), None)
+        if bad is not None:
+            raise ConfigError(f"{where}: scenario {d['name']}: {shown(bad)}: expected a value, not a mapping")
+        out.append(Scenario(d["name"], tuple((str(k), v) for k, v in d["overrides"].items())))
+    return tuple(out)
+
+
+def check_scenarios(scenarios: Sequence[Scenario], base: Config, where: str) -> tuple[Scenario, ...]:
+    """What every scenario set must be, from a file or a session (one check for
+    both): at least one and at most :data:`MAX_SCENARIOS`, names unique, only
+    world keys (:data:`SCENARIO_PREFIXES`), each a valid configuration over
+    ``base``, their road tables within the memory limit. One line naming
+    ``where``, the scenario and the key."""
+    if not scenarios:
+        raise ConfigError(f"{where}: no scenarios")
+    if len(scenarios) > MAX_SCENARIOS:
+        raise ConfigError(f"{where}: {len(scenarios)} scenarios, more than the limit of {MAX_SCENARIOS:,}")
+    names = [s.name for s in scenarios]
+    seen: set[str] = set()
+    dup = next((n for n in names if n in seen or seen.add(n)), None)
+    if dup is not None:
+        raise ConfigError(f"{where}: scenario {dup}: named twice")
+    for s in scenarios:
+        _overrides(dict(s.overrides), where, s.name)
+    cfgs = [s.config(base, source=f"{where}: scenario {s.name}") for s in scenarios]
+    check_road_memory([(c.reference, c.episode) for c in cfgs], str(where))
+    return tuple(scenarios)
 
 
 def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenario, ...]:
@@ -81,21 +116,10 @@ def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenar
         out.append(Scenario(str(name), _overrides(flat, path, str(name))))
     if "random" in doc:
         out.extend(_draws(doc["random"], path))
-    if not out:
-        raise ConfigError(f"{path}: no scenarios")
-    if len(out) > MAX_SCENARIOS:
-        raise ConfigError(f"{path}: {len(out)} scenarios, more than the limit of {MAX_SCENARIOS:,}")
-    names = [s.name for s in out]
-    dup = next((n for n in names if names.count(n) > 1), None)
-    if dup is not None:
-        raise ConfigError(f"{path}: scenario {dup}: named twice")
-    base = base or Config()
-    cfgs = [s.config(base, source=f"{path}: scenario {s.name}") for s in out]
-    check_road_memory([(c.reference, c.episode) for c in cfgs], str(path))
-    return tuple(out)
+    return check_scenarios(out, base or Config(), str(path))
 
 
-def _overrides(flat: Mapping[str, Any], path: Path, name: str) -> tuple[tuple[str, Any], ...]:
+def _overrides(flat: Mapping[str, Any], path: Path | str, name: str) -> tuple[tuple[str, Any], ...]:
     for key in flat:
         if not str(key).startswith(SCENARIO_PREFIXES):
             raise ConfigError(f"{path}: scenario {name}: {key}: a scenario sets only "
