@@ -84,36 +84,31 @@ def port(text: str) -> int:
     return v
 
 
-def output_file(text: str) -> str:
-    """An argparse type: a file the command will write, checked before the
-    work (:func:`has_control.common.files.check_output`: a new path or a
-    regular file, or a link to one, in a writable directory)."""
-    try:
-        check_output(text, "file")
-    except HasControlError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
-
-
-def output_dir(text: str) -> str:
-    """An argparse type: a directory the command will write into, checked before the work."""
-    try:
-        check_output(text, "directory")
-    except HasControlError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
+def check_outputs(args, files=(), directories=()) -> None:
+    """Before the work: every output the command line names (options
+    ``files`` and ``directories``, those given) can be written there
+    (:func:`has_control.common.files.check_output`: a new path, or a regular
+    file or a link to one, in a writable directory); one line naming it if not."""
+    for names, what in ((files, "file"), (directories, "directory")):
+        for name in names:
+            path = getattr(args, name, None)
+            if path is not None:
+                try:
+                    check_output(path, what)
+                except HasControlError as exc:
+                    raise HasControlError(f"--{name}: {exc}") from None
 
 
 def figure_path(text: str) -> str:
-    """An argparse type: a figure file whose format matplotlib writes, in a
-    place :func:`output_file` accepts (both checked before the run)."""
+    """An argparse type: a figure file whose format matplotlib writes (its
+    place: :func:`check_outputs`; both before the run)."""
     # lazy: matplotlib takes about 1 s to load; only commands given a figure need it
     from has_control.plots.figures import figure_format
     try:
         figure_format(text)
     except HasControlError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
-    return output_file(text)
+    return text
 
 
 def dask_spec(text: str) -> str:

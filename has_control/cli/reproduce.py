@@ -5,7 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from has_control.cli.args import add_config, load, output_dir, positive_int
+from has_control.cli.args import add_config, check_outputs, load, positive_int
 from has_control.cli.tune import tuning_args
 from has_control.common.files import check_new_output
 from has_control.tuning.reproduce import run_experiment, write_report
@@ -15,7 +15,7 @@ HELP = "the paper's experiment over seeds, as a report"
 
 def add_arguments(p) -> None:
     p.add_argument("--seeds", type=positive_int, default=10, metavar="N", help="seeds 1..N (default 10)")
-    p.add_argument("--out", type=output_dir, default="out/reproduce", metavar="DIR", help="report directory")
+    p.add_argument("--out", default="out/reproduce", metavar="DIR", help="report directory")
     add_config(p, "ros__parameters YAML (repeatable)")
     p.add_argument("--force", action="store_true", help="write into DIR even if it is not empty")
     p.add_argument("--particles", type=positive_int, metavar="N", help=argparse.SUPPRESS)
@@ -25,6 +25,7 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     check_new_output(args.out, args.force, "directory")
+    check_outputs(args, directories=("out",))
     cfg = load(args)
     tuning = tuning_args(args)
 

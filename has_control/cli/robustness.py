@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 
 from has_control.cli.args import (add_config, add_duration, add_json, batch, dask_spec, figure_path, gains_arg,
-                                  load, output_file)
+                                  check_outputs, load)
 from has_control.common.errors import HasControlError
 from has_control.common.files import write_atomic
 from has_control.config import load_scenarios
@@ -25,11 +25,12 @@ def add_arguments(p) -> None:
     add_duration(p)
     p.add_argument("--dask", type=dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
     p.add_argument("--plot", type=figure_path, metavar="FILE.png", help="write J and e_max per scenario as a figure")
-    p.add_argument("--markdown", type=output_file, metavar="FILE.md", help="write the table as Markdown")
+    p.add_argument("--markdown", metavar="FILE.md", help="write the table as Markdown")
     add_json(p)
 
 
 def run(args) -> int:
+    check_outputs(args, files=("plot", "markdown"))
     cfg = load(args)
     gains = [gains_arg(g) for g in args.gains]
     labels = list(args.label or [])

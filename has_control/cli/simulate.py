@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from has_control.cli.args import add_config, add_duration, add_json, figure_path, gains_arg, load, output_file
+from has_control.cli.args import add_config, add_duration, add_json, check_outputs, figure_path, gains_arg, load
 from has_control.common.files import write_atomic
 from has_control.core.episode import TRACE_COLUMNS, simulate
 from has_control.core.params import MANUAL_GAINS
@@ -20,7 +20,7 @@ def add_arguments(p) -> None:
     add_config(p)
     add_json(p)
     p.add_argument("--plot", type=figure_path, metavar="FILE.png", help="write tracking and error figures")
-    p.add_argument("--trace", type=output_file, metavar="FILE.csv", help="write the time series")
+    p.add_argument("--trace", metavar="FILE.csv", help="write the time series")
 
 
 def write_trace_csv(trace, path: str) -> None:
@@ -29,6 +29,7 @@ def write_trace_csv(trace, path: str) -> None:
 
 
 def run(args) -> int:
+    check_outputs(args, files=("plot", "trace"))
     cfg = load(args)
     gains = gains_arg(args.gains) if args.gains else MANUAL_GAINS.as_tuple()
     trace = simulate(cfg, gains)

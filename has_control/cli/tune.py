@@ -5,7 +5,7 @@ import json
 import sys
 from pathlib import Path
 
-from has_control.cli.args import (add_config, add_duration, add_json, batch, dask_spec, load, output_dir,
+from has_control.cli.args import (add_config, add_duration, add_json, batch, dask_spec, check_outputs, load,
                                   positive_int)
 from has_control.cli.status import Progress
 from has_control.common.errors import HasControlError
@@ -23,7 +23,7 @@ def add_arguments(p) -> None:
     p.add_argument("--iterations", type=positive_int, metavar="N", help="iterations (default 100)")
     add_config(p, "ros__parameters YAML (episode and swarm.* keys; repeatable)")
     add_duration(p)
-    p.add_argument("--out", type=output_dir, metavar="DIR",
+    p.add_argument("--out", metavar="DIR",
                    help="write the session bag DIR/session (resumable), tune.json, gains.yaml (--params-file), "
                         "convergence.png, gains.png")
     p.add_argument("--resume", metavar="DIR",
@@ -62,6 +62,7 @@ def _figures(res, directory: Path) -> None:
 
 
 def run(args) -> int:
+    check_outputs(args, directories=("out",))
     if args.resume:
         if args.out and Path(args.out) != Path(args.resume):
             raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")

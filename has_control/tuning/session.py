@@ -35,6 +35,7 @@ from has_control.bag.read import parameters_from_json
 from has_control.common.errors import HasControlError, shown
 from has_control.common.files import DirectoryLock
 from has_control.common.json_bounded import loads_bounded
+from has_control.config import build_config
 from has_control.tuning.swarm import Swarm, record_dict, record_from
 from has_control.tuning.tuner import TuneResult, Tuning, tuning_from_json, tuning_json
 
@@ -145,7 +146,6 @@ def resume(directory: str | Path, on_warning=warn) -> Resumed:
     result. A session whose result is stored but whose ``tune.json`` is not
     (the final writes were interrupted) comes back with ``result`` set.
     """
-    from has_control.config import build_config
     d = Path(directory)
     old = d / (SESSION + ".interrupted")
     cur = d / SESSION
@@ -163,27 +163,15 @@ def resume(directory: str | Path, on_warning=warn) -> Resumed:
         old.rename(cur)
         lock.release()
         raise BagError(f"{cur}: the session has finished already (see {d / RESULT_FILE})")
-    settings = bag.messages.get(SETTINGS) or []
-    s = _json(settings[0][1]) if settings else None
     try:
-        if s is None or not isinstance(s.get("tuning"), dict):
-            raise BagError(f"{old}: no readable {SETTINGS} message; cannot resume")
-        where = f"{old} ({SETTINGS})"
-        if not isinstance(s.get("parameters"), dict):
-            raise BagError(f"{where}: parameters = {shown(s.get('parameters'))}: expected an object of "
-                           "parameter names to values")
-        if s.get("evaluator", "batch") not in EVALUATORS:
-            raise BagError(f"{where}: evaluator = {shown(s.get('evaluator'))}: expected one of "
-                           f"{', '.join(EVALUATORS)}")
-        # the checks the command line's settings pass: a session edited by hand resumes only if tune would start it
-        cfg = build_config(parameters_from_json(json.dumps(s["parameters"]), f"{where}: parameters"), source=where)
-        tuning = tuning_from_json(s["tuning"], f"{where}: tuning", cfg)
+        restored = restore(bag.messages, old)
     except HasControlError:
         lock.release()
         raise
+    tuning, cfg, evaluator, k, swarm = restored
+    settings = bag.messages.get(SETTINGS) or []
     states = bag.messages.get(SWARM) or []
     records = bag.messages.get(ITERATION) or []
-    k, swarm = _last_good_iteration(records, states, tuning)
     if k < max(len(records), len(states)) or not bag.complete:
         on_warning(f"{old}: records damaged or missing after iteration {k}: resuming from iteration {k}, "
                    "the last good one")
@@ -192,10 +180,37 @@ def resume(directory: str | Path, on_warning=warn) -> Resumed:
     keep = [(SETTINGS, *settings[0])]
     keep += [(ITERATION, *r) for r in records[:k]] + [(SWARM, *x) for x in states[:k]]
     keep.sort(key=lambda m: m[1])
-    session = Session(d, tuning, cfg, s.get("evaluator", "batch"), _copy_from=keep, _lock=lock)
+    session = Session(d, tuning, cfg, evaluator, _copy_from=keep, _lock=lock)
     shutil.rmtree(old)
-    return Resumed(swarm, tuning, cfg, s.get("evaluator", "batch"), session,
-                   results[-1] if results and swarm.done else None)
+    return Resumed(swarm, tuning, cfg, evaluator, session, results[-1] if results and swarm.done else None)
+
+
+def restore(messages: dict, where) -> tuple[Tuning, object, str, int, Swarm | None]:
+    """What a session's messages (topic: [(time, bytes)]) say, every record
+    checked: (tuning, cfg, evaluator, k, the swarm after its last good
+    iteration k, None for 0). The settings pass the command line's checks
+    (a session edited by hand resumes only if ``tune`` would start it) or
+    are one line naming ``where``; a damaged or inconsistent iteration ends
+    the good ones (:func:`_last_good_iteration`)."""
+    settings = messages.get(SETTINGS) or []
+    s = _json(settings[0][1]) if settings else None
+    if s is None or not isinstance(s.get("tuning"), dict):
+        raise BagError(f"{where}: no readable {SETTINGS} message; cannot resume")
+    where = f"{where} ({SETTINGS})"
+    if not isinstance(s.get("parameters"), dict):
+        raise BagError(f"{where}: parameters = {shown(s.get('parameters'))}: expected an object of "
+                       "parameter names to values")
+    if s.get("evaluator", "batch") not in EVALUATORS:
+        raise BagError(f"{where}: evaluator = {shown(s.get('evaluator'))}: expected one of "
+                       f"{', '.join(EVALUATORS)}")
+    # the checks the command line's settings pass: a session edited by hand resumes only if tune would start it
+    try:
+        cfg = build_config(parameters_from_json(json.dumps(s["parameters"]), f"{where}: parameters"), source=where)
+        tuning = tuning_from_json(s["tuning"], f"{where}: tuning", cfg)
+    except HasControlError as exc:
+        raise BagError(f"{exc}; cannot resume") from None
+    k, swarm = _last_good_iteration(messages.get(ITERATION) or [], messages.get(SWARM) or [], tuning)
+    return tuning, cfg, s.get("evaluator", "batch"), k, swarm
 
 
 #: What a session may name as its evaluator.
