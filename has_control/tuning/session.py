@@ -197,14 +197,14 @@ def restore(messages: dict, where) -> tuple[Tuning, object, str, int, Swarm | No
     if s is None or not isinstance(s.get("tuning"), dict):
         raise BagError(f"{where}: no readable {SETTINGS} message; cannot resume")
     where = f"{where} ({SETTINGS})"
-    if not isinstance(s.get("parameters"), dict):
-        raise BagError(f"{where}: parameters = {shown(s.get('parameters'))}: expected an object of "
-                       "parameter names to values")
-    if s.get("evaluator", "batch") not in EVALUATORS:
-        raise BagError(f"{where}: evaluator = {shown(s.get('evaluator'))}: expected one of "
-                       f"{', '.join(EVALUATORS)}")
-    # the checks the command line's settings pass: a session edited by hand resumes only if tune would start it
     try:
+        if not isinstance(s.get("parameters"), dict):
+            raise BagError(f"{where}: parameters = {shown(s.get('parameters'))}: expected an object of "
+                           "parameter names to values")
+        if s.get("evaluator", "batch") not in EVALUATORS:
+            raise BagError(f"{where}: evaluator = {shown(s.get('evaluator'))}: expected one of "
+                           f"{', '.join(EVALUATORS)}")
+        # the checks the command line's settings pass: a session edited by hand resumes only if tune would start it
         cfg = build_config(parameters_from_json(json.dumps(s["parameters"]), f"{where}: parameters"), source=where)
         tuning = tuning_from_json(s["tuning"], f"{where}: tuning", cfg)
     except HasControlError as exc:
