@@ -256,7 +256,7 @@ def _last_good_iteration(records, states, tuning: Tuning) -> tuple[int, Swarm | 
             if (len(swarm.history) == k and all(h.iteration == i for i, h in enumerate(swarm.history))
                     and _fits(swarm, tuning, k)):
                 return k, swarm
-        except (HasControlError, KeyError, TypeError, ValueError, IndexError):
+        except (HasControlError, KeyError, TypeError, ValueError, IndexError, ArithmeticError):
             pass
         k -= 1
     return 0, None
