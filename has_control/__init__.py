@@ -47,26 +47,34 @@ def _exit_quietly_on_interrupt(signum, frame):
     os._exit(130)
 
 
+def raise_interrupt(signum, frame):
+    """A SIGTERM handler: end as Ctrl-C does (``has_control.cli.main`` installs it)."""
+    raise KeyboardInterrupt
+
+
 class quiet_interrupts:
-    """A context in which Ctrl-C ends the process at once with one line and
-    status 130: for loading code (imports, numba's cache), where a
+    """A context in which Ctrl-C or SIGTERM ends the process at once with one
+    line and status 130 (as ``has_control.cli.main`` ends an interrupted
+    command): for loading code (imports, numba's cache), where a
     KeyboardInterrupt would surface as an ImportError or an "Exception
-    ignored" from a ctypes callback instead. Only when Python's own SIGINT
-    handler is in place (main thread, nobody else's); restored on exit."""
+    ignored" from a ctypes callback instead, and SIGTERM's default action
+    would end the process silently. Each signal only while its handler is
+    Python's default (main thread, nobody else's); restored on exit."""
 
     def __enter__(self):
         import signal
         import threading
-        self.ours = (threading.current_thread() is threading.main_thread()
-                     and signal.getsignal(signal.SIGINT) is signal.default_int_handler)
-        if self.ours:
-            signal.signal(signal.SIGINT, _exit_quietly_on_interrupt)
+        main = threading.current_thread() is threading.main_thread()
+        defaults = {signal.SIGINT: (signal.default_int_handler,), signal.SIGTERM: (signal.SIG_DFL, raise_interrupt)}
+        self.ours = {sig: signal.getsignal(sig) for sig, hs in defaults.items() if main and signal.getsignal(sig) in hs}
+        for sig in self.ours:
+            signal.signal(sig, _exit_quietly_on_interrupt)
         return self
 
     def __exit__(self, *exc):
-        if self.ours:
-            import signal
-            signal.signal(signal.SIGINT, signal.default_int_handler)
+        import signal
+        for sig, handler in self.ours.items():
+            signal.signal(sig, handler)
 
 
 with quiet_interrupts():        # the first second of every command, before cli.main can catch anything

@@ -132,3 +132,107 @@ def test_fuzz_the_bag_reader(small_bags, tmp_path, capsys):
             except HasControlError:
                 pass
     _fuzz(small_bags, check, tmp_path, "bag.mcap", seed=2027, cases=BAG_CASES)
+
+
+# --- issue #19: metadata.yaml's custom_data and session records -----------------------------------
+
+METADATA_CASES = 400        # edits of metadata.yaml custom_data (each a bag read: SECONDS ends it near 100)
+SESSION_CASES = 400         # edits of a session's records, each checked as a resume checks it (about 3 s)
+JSON_TOKENS = [b"[", b"]", b"{", b"}", b",", b":", b'"', b"null", b"true", b"1e999", b"-1", b"NaN", b"[" * 5000,
+               b'{"a": {"b": [1, {"c": 2}]}}', b'"simulation.step": 0.0007', b'"swarm"', b"\\u0000", b"9" * 5000]
+
+
+@pytest.fixture(scope="module")
+def metadata_bag(tmp_path_factory):
+    from has_control.bag import PARAMETERS_KEY, parameters_json, write_trace
+    from has_control.core.episode import simulate
+    from has_control.config import with_horizon
+    from has_control.core.params import Config
+    cfg = with_horizon(Config(), 1.2)
+    d = tmp_path_factory.mktemp("fuzzmeta") / "run"
+    w = BagWriter(d, {PARAMETERS_KEY: parameters_json(cfg)})
+    tr = simulate(cfg)
+    write_trace(w, dataclasses.replace(tr, data=tr.data[:200]), cfg)
+    w.close()
+    return d
+
+
+def test_fuzz_metadata_custom_data(metadata_bag, tmp_path):
+    """The fuzzed bytes are the parameters' JSON (most cases) or the whole
+    custom_data mapping's YAML, in an otherwise intact metadata.yaml."""
+    import shutil
+
+    import yaml
+
+    from has_control.bag import PARAMETERS_KEY
+    bag = tmp_path / "bag"
+    shutil.copytree(metadata_bag, bag)
+    doc = yaml.safe_load((metadata_bag / "metadata.yaml").read_text())
+    info = doc["rosbag2_bagfile_information"]
+    stored = info["custom_data"][PARAMETERS_KEY]
+    head, _, tail = (metadata_bag / "metadata.yaml").read_text().partition("  custom_data:")
+    seeds = [stored.encode(), b'{"simulation.horizon": 1.2}', b"{}", yaml.safe_dump(info["custom_data"]).encode()]
+
+    def check(path):
+        data = path.read_bytes()
+        if data.startswith(b"{") or data.startswith(b"[") or path.stat().st_size % 4:
+            info["custom_data"] = {PARAMETERS_KEY: data.decode("utf-8", "replace")}
+            (bag / "metadata.yaml").write_text(yaml.safe_dump(doc, width=10**9))
+        else:                                           # the mapping itself, as YAML text
+            custom = "\n".join("    " + x for x in data.decode("utf-8", "replace").splitlines())
+            rest = tail.split("\n", 1)[1] if "\n" in tail else ""
+            rest = "\n".join(x for x in rest.splitlines() if not x.startswith("    "))
+            (bag / "metadata.yaml").write_text(f"{head}  custom_data:\n{custom}\n{rest}\n")
+        b = read_bag(bag, on_warning=lambda m: None)
+        describe(b)
+        b.config()
+    _fuzz(seeds, check, tmp_path, "custom_data", seed=2028, cases=METADATA_CASES, tokens=JSON_TOKENS + YAML_TOKENS)
+
+
+@pytest.fixture(scope="module")
+def session_records(tmp_path_factory):
+    """The messages of a session of 2 iterations of 3 particles (stopped after them)."""
+    from has_control.config import with_horizon
+    from has_control.core.params import Config
+    from has_control.tuning.session import Session
+    from has_control.tuning.tuner import tune
+    cfg = with_horizon(Config(), 1.2)
+    tuning = load_tuning().replace(particles=3, iterations=4)
+    d = tmp_path_factory.mktemp("fuzzsession") / "s"
+    session = Session(d, tuning, cfg)
+
+    class Stop(Exception):
+        pass
+
+    def each(sw):
+        session.record(sw)
+        if sw.iteration == 2:
+            raise Stop
+    with pytest.raises(Stop):
+        tune(cfg, tuning, callback=each)
+    session.close()
+    session.release()
+    return read_bag(d / "session").messages
+
+
+def test_fuzz_session_records(session_records, tmp_path):
+    """Each case replaces one record (settings, an iteration, a swarm state)
+    by fuzzed JSON; what resume reads of it (:func:`restore`) gives a
+    session to continue, whose swarm takes its next step, or one line."""
+    from has_control.tuning.session import ITERATION, SETTINGS, SWARM, _string, _unstring, restore
+    slots = [(SETTINGS, 0), (ITERATION, 0), (ITERATION, 1), (SWARM, 0), (SWARM, 1)]
+    seeds = [_unstring(session_records[t][i][1]).encode() for t, i in slots]
+    case = [0]
+
+    def check(path):
+        topic, index = slots[case[0] % len(slots)]
+        case[0] += 1
+        messages = {t: list(m) for t, m in session_records.items()}
+        t_ns, _ = messages[topic][index]
+        messages[topic][index] = (t_ns, _string(path.read_bytes().decode("utf-8", "replace")))
+        tuning, cfg, evaluator, k, swarm = restore(messages, tmp_path / "s")
+        if swarm is not None and not swarm.done:
+            x = swarm.ask()
+            assert x.shape == (tuning.swarm.particles, 3)
+            swarm.tell(np.ones(len(x)))
+    _fuzz(seeds, check, tmp_path, "record.json", seed=2029, cases=SESSION_CASES, tokens=JSON_TOKENS)

@@ -2,14 +2,15 @@
 truncation tolerated and reported), and a ``ros2 bag info``-style summary."""
 from __future__ import annotations
 
-import json
 import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable
 
+from has_control.common.errors import shown
 from has_control.common.files import MiB, read_bytes, read_text
+from has_control.common.json_bounded import loads_bounded
 from has_control.bag.base import PARAMETERS_KEY, BagError, warn
 from has_control.bag.mcap_format import FOOTER_BYTES, MAGIC, Op, decode_string, decode_string_map
 from has_control.config import build_config, load_config, load_yaml, read_parameter_files
@@ -58,19 +59,24 @@ class Bag:
     def config(self, overrides: Iterable[str | Path] = ()):
         """The run's Config from the bag (else the shipped defaults, with a warning)."""
         overrides = list(overrides)
-        stored = self.custom_data.get(PARAMETERS_KEY)
-        if stored is None:
+        flat = self.parameters()
+        if flat is None:
             self.on_warning(f"{self.path}: no {PARAMETERS_KEY} in the bag; scoring with the shipped configuration")
             return load_config(overrides)
-        try:
-            flat = json.loads(stored)
-        except ValueError:
-            raise BagError(f"{self.path}: custom_data {PARAMETERS_KEY} is not JSON") from None
         cfg = build_config(flat, source=f"{self.path} ({PARAMETERS_KEY})")
         if overrides:
             over, sources = read_parameter_files(overrides)
             cfg = build_config(over, source=", ".join(map(str, overrides)), base=cfg)
         return cfg
+
+    def parameters(self) -> dict | None:
+        """The run's flat parameters (custom_data ``has_control/parameters``,
+        a JSON object of names to values or lists of values), None if the bag
+        has none; one line naming the bag if they are anything else."""
+        stored = self.custom_data.get(PARAMETERS_KEY)
+        if stored is None:
+            return None
+        return parameters_from_json(stored, f"{self.path}: custom_data {PARAMETERS_KEY}")
 
     @property
     def start_ns(self) -> int:
@@ -143,10 +149,40 @@ def _files_from_metadata(meta: Path, bag: Bag) -> list[Path]:
     for f in files:
         if not f.exists():
             raise BagError(f"{meta}: lists {f.name}, which does not exist")
-    custom = info.get("custom_data") or {}
-    if isinstance(custom, dict):
-        bag.custom_data.update({str(k): str(v) for k, v in custom.items()})
+    bag.custom_data.update(custom_data_map(info.get("custom_data"), f"{meta}: custom_data"))
     return files
+
+
+def custom_data_map(value, where: str) -> dict[str, str]:
+    """rosbag2's custom_data (a map of strings to strings) as read from YAML:
+    absent is empty; anything but a mapping of names to scalars is one line
+    naming ``where``."""
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise BagError(f"{where}: expected a mapping of names to strings, not {type(value).__name__} {shown(value)}")
+    for k, v in value.items():
+        if isinstance(v, (dict, list)) or not isinstance(k, (str, int, float, bool)):
+            raise BagError(f"{where}: {shown(k)}: expected a string value, not {shown(v)}")
+    return {str(k): str(v) for k, v in value.items()}
+
+
+def _json_kind(value) -> str:
+    return ("null" if value is None else "an array" if isinstance(value, list) else "a string"
+            if isinstance(value, str) else "a boolean" if isinstance(value, bool) else "a number")
+
+
+def parameters_from_json(text: str, where: str) -> dict:
+    """Stored flat parameters: a JSON object of names to a value or a list of
+    values (as :func:`has_control.bag.write.parameters_json` writes them),
+    nesting bounded; else one line naming ``where``."""
+    flat = loads_bounded(text, where, BagError)
+    if not isinstance(flat, dict):
+        raise BagError(f"{where}: expected a JSON object of parameter names to values, not {_json_kind(flat)}")
+    for k, v in flat.items():
+        if isinstance(v, dict) or (isinstance(v, list) and any(isinstance(x, (dict, list)) for x in v)):
+            raise BagError(f"{where}: {shown(k)} = {shown(v)}: expected a value or a list of values")
+    return flat
 
 
 class _ChunkDamage(Exception):
@@ -358,8 +394,13 @@ def _custom_from_serialized(text: str, bag: Bag, f: Path) -> None:
     try:
         doc = load_yaml(text, f"{f} (rosbag2 metadata)", BagError)
         info = doc.get("rosbag2_bagfile_information", doc)     # rosbag2 stores the inner mapping
-        stored = {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
-    except (BagError, AttributeError):
+        if not isinstance(info, dict):
+            return
+        stored = custom_data_map(info.get("custom_data"), f"{f}: the rosbag2 metadata record's custom_data")
+    except BagError as exc:
+        if not bag.custom_data:                # it would have been used: refuse it
+            raise
+        bag.on_warning(str(exc))
         return
     if not bag.custom_data:
         bag.custom_data.update(stored)
@@ -388,8 +429,8 @@ def describe(bag: Bag) -> str:
                      f"Serialization Format: {bag.encodings.get(t) or 'unknown'}")
     if PARAMETERS_KEY in bag.custom_data:
         try:
-            what = f"{len(json.loads(bag.custom_data[PARAMETERS_KEY]))} parameters"
-        except (ValueError, TypeError):
-            what = "not JSON"
+            what = f"{len(bag.parameters())} parameters"
+        except BagError as exc:
+            what = f"invalid: {str(exc).rsplit(': ', 1)[-1]}"
         lines.append(f"custom_data:       {PARAMETERS_KEY} ({what})")
     return "\n".join(lines)

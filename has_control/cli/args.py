@@ -8,6 +8,7 @@ import re
 from contextlib import nullcontext
 
 from has_control.common.errors import HasControlError
+from has_control.common.files import check_output
 from has_control.config import check_gain, finite_number, load_config, with_horizon
 from has_control.core.params import Config
 
@@ -83,8 +84,24 @@ def port(text: str) -> int:
     return v
 
 
+def check_outputs(args, files=(), directories=()) -> None:
+    """Before the work: every output the command line names (options
+    ``files`` and ``directories``, those given) can be written there
+    (:func:`has_control.common.files.check_output`: a new path, or a regular
+    file or a link to one, in a writable directory); one line naming it if not."""
+    for names, what in ((files, "file"), (directories, "directory")):
+        for name in names:
+            path = getattr(args, name, None)
+            if path is not None:
+                try:
+                    check_output(path, what)
+                except HasControlError as exc:
+                    raise HasControlError(f"--{name}: {exc}") from None
+
+
 def figure_path(text: str) -> str:
-    """An argparse type: a figure file whose format matplotlib writes (checked before the run)."""
+    """An argparse type: a figure file whose format matplotlib writes (its
+    place: :func:`check_outputs`; both before the run)."""
     # lazy: matplotlib takes about 1 s to load; only commands given a figure need it
     from has_control.plots.figures import figure_format
     try:

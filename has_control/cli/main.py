@@ -14,6 +14,7 @@ import threading
 from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
+from has_control import raise_interrupt
 from has_control.cli import bag_info, plot, reproduce, replay, robustness, score, simulate, stack, tune
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
 from has_control.cli.node_help import print_help, wants_help
@@ -52,6 +53,8 @@ def build_parser() -> Parser:
 def main(argv=None) -> int:
     """The program (``argv`` None: the command line); the exit status."""
     if argv is None:
+        if not sys.argv[1:2] or sys.argv[1] not in NODES:      # a node's SIGTERM is rclpy's (a clean shutdown)
+            _terminate_as_interrupt()
         try:
             status = main(sys.argv[1:])
         finally:
@@ -119,6 +122,14 @@ def main_of(node: str) -> int:
     return main([node, *sys.argv[1:]])
 
 
+def _terminate_as_interrupt() -> None:
+    """SIGTERM (a supervisor, ``kill``, a CI timeout) ends a command as Ctrl-C
+    does: KeyboardInterrupt, so what a command leaves (a session bag, a
+    recording) is closed whole, then one line "interrupted" and status 130."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, raise_interrupt)
+
+
 def _ignore_interrupts() -> None:
     """Once the program's status is decided, a Ctrl-C during the interpreter's
     shutdown (numba, rclpy and matplotlib take a while) changes nothing: the
@@ -128,6 +139,7 @@ def _ignore_interrupts() -> None:
     KeyboardInterrupt in rclpy's care would otherwise re-raise SIGINT."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _os_error_line(exc: OSError) -> str:

@@ -5,7 +5,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from has_control.cli.args import add_config, load, positive_int
+from has_control.cli.args import add_config, check_outputs, load, positive_int
 from has_control.cli.tune import tuning_args
 from has_control.common.files import check_new_output
 from has_control.tuning.reproduce import run_experiment, write_report
@@ -25,6 +25,7 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     check_new_output(args.out, args.force, "directory")
+    check_outputs(args, directories=("out",))
     cfg = load(args)
     tuning = tuning_args(args)
 

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import json
 
-from has_control.cli.args import add_config, add_duration, add_json, batch, dask_spec, figure_path, gains_arg, load
+from has_control.cli.args import (add_config, add_duration, add_json, batch, dask_spec, figure_path, gains_arg,
+                                  check_outputs, load)
 from has_control.common.errors import HasControlError
 from has_control.common.files import write_atomic
 from has_control.config import load_scenarios
@@ -31,6 +32,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    check_outputs(args, files=("plot", "markdown"))
     cfg = load(args)
     gains = [gains_arg(g) for g in args.gains]
     labels = list(args.label or [])

@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from has_control.cli.args import add_config, add_duration, add_json, figure_path, gains_arg, load
+from has_control.cli.args import add_config, add_duration, add_json, check_outputs, figure_path, gains_arg, load
 from has_control.common.files import write_atomic
 from has_control.core.episode import TRACE_COLUMNS, TRACE_UNITS, simulate
 from has_control.core.params import MANUAL_GAINS
@@ -30,6 +30,7 @@ def write_trace_csv(trace, path: str) -> None:
 
 
 def run(args) -> int:
+    check_outputs(args, files=("plot", "trace"))
     cfg = load(args)
     gains = gains_arg(args.gains) if args.gains else MANUAL_GAINS.as_tuple()
     trace = simulate(cfg, gains)

@@ -5,15 +5,14 @@ import json
 import sys
 from pathlib import Path
 
-from has_control.cli.args import add_config, add_duration, add_json, batch, dask_spec, load, positive_int
+from has_control.bag.series import run_series
+from has_control.cli.args import (add_config, add_duration, add_json, batch, check_outputs, dask_spec, load,
+                                  positive_int)
 from has_control.cli.status import Progress
 from has_control.common.errors import HasControlError
-from has_control.config import load_scenarios
-from has_control.core.scenarios import parse_aggregate
-from has_control.bag.series import run_series
 from has_control.tuning.session import SESSION, run_session
 from has_control.tuning.swarm import VARIANTS
-from has_control.tuning.tuner import load_tuning
+from has_control.tuning.tuner import load_tuning, robust_tuning
 
 HELP = "tune k1, k2, k3 with a particle swarm"
 
@@ -52,13 +51,8 @@ def tuning_args(args):
 
 
 def robust(args, cfg, tuning):
-    """``tuning`` with the scenarios of ``--scenarios`` and ``--aggregate``."""
-    if args.aggregate and not args.scenarios:
-        raise HasControlError(f"--aggregate {args.aggregate}: needs --scenarios FILE")
-    if not args.scenarios:
-        return tuning
-    return tuning.replace(scenarios=load_scenarios(args.scenarios, cfg),
-                          aggregate=parse_aggregate(args.aggregate or "mean"))
+    """``tuning`` with the scenarios of ``--scenarios`` and ``--aggregate`` (checked as the tuner node's)."""
+    return robust_tuning(tuning, cfg, args.scenarios, args.aggregate)
 
 
 def _figures(res, directory: Path) -> None:
@@ -72,10 +66,11 @@ def _figures(res, directory: Path) -> None:
 
 
 def run(args) -> int:
+    check_outputs(args, directories=("out",))
     if args.resume:
         if args.out and Path(args.out) != Path(args.resume):
             raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")
-        if args.scenarios or args.aggregate:
+        if args.scenarios is not None or args.aggregate is not None:
             raise HasControlError("--scenarios/--aggregate: a resumed session scores on its own scenarios")
         cfg = tuning = None
     else:

@@ -66,29 +66,97 @@ def read_text(path: str | Path, limit: int, error: type[HasControlError] = HasCo
         raise error(f"{path}: not UTF-8 text (byte {exc.start})") from None
 
 
+def _kind(mode: int) -> str:
+    return ("a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode)
+            else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+            else "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+
+
+def output_target(path: str | Path) -> Path:
+    """The file a write to ``path`` replaces: ``path``, or for a symlink the
+    file it points to (written through, the link kept). An existing target
+    that is not a regular file (a device, FIFO, directory, socket) is refused
+    in one line naming ``path``: a rename over it would replace it."""
+    p = Path(path)
+    target = Path(os.path.realpath(p)) if p.is_symlink() else p
+    try:
+        st = os.stat(target)
+    except FileNotFoundError:
+        return target
+    except OSError as exc:
+        raise io_error(path, exc, "write") from None
+    if not stat.S_ISREG(st.st_mode):
+        via = f" (a link to {target})" if target != p else ""
+        raise HasControlError(f"{path}{via}: {_kind(st.st_mode)}: expected a regular file or a new path; not replaced")
+    return target
+
+
+def check_output(path: str | Path, what: str = "file") -> Path:
+    """Before any work: ``path`` can be written as a ``what`` ("file" or
+    "directory"): a new path, an existing regular file (or a link to one) or
+    directory, whose nearest existing folder is a writable directory. The
+    target (:func:`output_target`) for a file; one line naming ``path`` if not."""
+    p = Path(path)
+    if str(path) == "":
+        raise HasControlError("'': an empty path")
+    if what == "directory":
+        if p.exists() and not p.is_dir():
+            raise HasControlError(f"{path}: exists and is not a directory")
+        target = p
+    else:
+        target = output_target(p)
+    folder = target if what == "directory" and target.exists() else target.parent
+    while not folder.exists() and folder != folder.parent:
+        if folder.is_symlink():
+            raise HasControlError(f"{path}: {folder} is a dangling link")
+        folder = folder.parent
+    if not folder.is_dir():
+        raise HasControlError(f"{path}: {folder} is not a directory")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        reason = "read-only file system" if _read_only_fs(folder) else "permission denied"
+        raise HasControlError(f"{path}: cannot write: {folder} is not writable ({reason})")
+    return target
+
+
+def _read_only_fs(folder: Path) -> bool:
+    try:
+        return bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
 def write_atomic(path: str | Path, data: bytes | str | Callable[[Path], object]) -> Path:
     """Write ``data`` (bytes, text, or a function that writes the file it is
-    given) to a temporary file beside ``path``, flush it to disk and rename it
-    over ``path``. On failure the temporary file is removed and the error
-    names ``path``."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    given) to a temporary file beside the target, flush it to disk and rename
+    it over the target. The target is ``path``, or the file a symlink
+    ``path`` points to; anything but a regular file or a new path is refused
+    (:func:`output_target`). On failure the temporary file is removed and
+    the error names ``path``, never the temporary file."""
+    target = output_target(path)
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        target.parent.mkdir(parents=True, exist_ok=True)
         if callable(data):
             data(tmp)
         else:
             tmp.write_bytes(data.encode() if isinstance(data, str) else data)
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(tmp, target)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
+        _unlink_quietly(tmp)
         raise io_error(path, exc, "write") from None
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        _unlink_quietly(tmp)
         raise
-    return path
+    return Path(path)
+
+
+def _unlink_quietly(tmp: Path) -> None:
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def check_new_output(path: str | Path, force: bool, what: str) -> None:

@@ -10,7 +10,7 @@ from has_control.config.params_file import (  # noqa: F401
     LIBRARY_NODES, MAX_CONFIG_BYTES, node_matches, read_parameter_file, read_parameter_files,
 )
 from has_control.config.scenario_files import (  # noqa: F401
-    MAX_SCENARIOS, SCENARIO_PREFIXES, Scenario, load_scenarios, scenario_configs, scenarios_from_json,
+    MAX_SCENARIOS, SCENARIO_PREFIXES, Scenario, check_scenarios, load_scenarios, scenario_configs, scenarios_from_json,
 )
 from has_control.config.schema import (  # noqa: F401
     CONFIG_DIR, GAIN_MAX, MAX_SAMPLES, SEED_LIMIT, SEED_RANGE, build_config, check_gain, config_parameters,

@@ -59,7 +59,7 @@ def read_parameter_file(path: str | Path, node: str | None = None) -> dict[str, 
             continue
         if not isinstance(params, Mapping):
             raise ConfigError(f"{path}: {section}.ros__parameters is not a mapping")
-        flat = flatten(params)
+        flat = flatten(params, where=f"{path}: {section}.ros__parameters")
         for t in targets:
             if node_matches(str(section), t):
                 per_node[t].update(flat)

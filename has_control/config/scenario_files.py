@@ -20,6 +20,7 @@ The robust cost over a scenario set is :mod:`has_control.core.scenarios`'.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -32,6 +33,7 @@ from has_control.config.params_file import MAX_CONFIG_BYTES
 from has_control.config.schema import SEED_RANGE, build_config, finite_number, is_seed
 from has_control.config.yaml_safe import flatten, load_yaml
 from has_control.core.params import Config
+from has_control.core.reference import check_road_memory
 
 #: What a scenario may set: the world, not the controller.
 SCENARIO_PREFIXES = ("plant.", "noise.", "reference.")
@@ -55,8 +57,43 @@ class Scenario:
         return {"name": self.name, "overrides": dict(self.overrides)}
 
 
-def scenarios_from_json(items: Sequence[Mapping]) -> tuple[Scenario, ...]:
-    return tuple(Scenario(str(d["name"]), tuple((str(k), v) for k, v in d["overrides"].items())) for d in items)
+def scenarios_from_json(items: Sequence[Mapping], where: str = "scenarios") -> tuple[Scenario, ...]:
+    """Scenarios stored as JSON (a session's settings): a list of {name, overrides}; one line naming
+    ``where`` if they are anything else. Check them with :func:`check_scenarios`."""
+    if not isinstance(items, list):
+        raise ConfigError(f"{where}: expected a list of scenarios, not {shown(items)}")
+    out = []
+    for d in items:
+        if (not isinstance(d, Mapping) or set(d) != {"name", "overrides"} or not isinstance(d["name"], str)
+                or not isinstance(d["overrides"], Mapping)):
+            raise ConfigError(f"{where}: {shown(d)}: expected {{name: NAME, overrides: {{KEY: VALUE, ...}}}}")
+        bad = next((k for k, v in d["overrides"].items() if isinstance(v, (dict, Mapping))), None)
+        if bad is not None:
+            raise ConfigError(f"{where}: scenario {d['name']}: {shown(bad)}: expected a value, not a mapping")
+        out.append(Scenario(d["name"], tuple((str(k), v) for k, v in d["overrides"].items())))
+    return tuple(out)
+
+
+def check_scenarios(scenarios: Sequence[Scenario], base: Config, where: str) -> tuple[Scenario, ...]:
+    """What every scenario set must be, from a file or a session (one check for
+    both): at least one and at most :data:`MAX_SCENARIOS`, names unique, only
+    world keys (:data:`SCENARIO_PREFIXES`), each a valid configuration over
+    ``base``, their road tables within the memory limit. One line naming
+    ``where``, the scenario and the key."""
+    if not scenarios:
+        raise ConfigError(f"{where}: no scenarios")
+    if len(scenarios) > MAX_SCENARIOS:
+        raise ConfigError(f"{where}: {len(scenarios)} scenarios, more than the limit of {MAX_SCENARIOS:,}")
+    names = [s.name for s in scenarios]
+    seen: set[str] = set()
+    dup = next((n for n in names if n in seen or seen.add(n)), None)
+    if dup is not None:
+        raise ConfigError(f"{where}: scenario {dup}: named twice")
+    for s in scenarios:
+        _overrides(dict(s.overrides), where, s.name)
+    cfgs = [s.config(base, source=f"{where}: scenario {s.name}") for s in scenarios]
+    check_road_memory([(c.reference, c.episode) for c in cfgs], str(where))
+    return tuple(scenarios)
 
 
 def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenario, ...]:
@@ -75,24 +112,14 @@ def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenar
     for name, body in named.items():
         if body is not None and not isinstance(body, Mapping):
             raise ConfigError(f"{path}: scenario {name}: expected a mapping of overrides")
-        out.append(Scenario(str(name), _overrides(flatten(body or {}), path, str(name))))
+        flat = flatten(body or {}, where=f"{path}: scenario {name}")
+        out.append(Scenario(str(name), _overrides(flat, path, str(name))))
     if "random" in doc:
         out.extend(_draws(doc["random"], path))
-    if not out:
-        raise ConfigError(f"{path}: no scenarios")
-    if len(out) > MAX_SCENARIOS:
-        raise ConfigError(f"{path}: {len(out)} scenarios, more than the limit of {MAX_SCENARIOS:,}")
-    names = [s.name for s in out]
-    dup = next((n for n in names if names.count(n) > 1), None)
-    if dup is not None:
-        raise ConfigError(f"{path}: scenario {dup}: named twice")
-    base = base or Config()
-    for s in out:
-        s.config(base, source=f"{path}: scenario {s.name}")
-    return tuple(out)
+    return check_scenarios(out, base or Config(), str(path))
 
 
-def _overrides(flat: Mapping[str, Any], path: Path, name: str) -> tuple[tuple[str, Any], ...]:
+def _overrides(flat: Mapping[str, Any], path: Path | str, name: str) -> tuple[tuple[str, Any], ...]:
     for key in flat:
         if not str(key).startswith(SCENARIO_PREFIXES):
             raise ConfigError(f"{path}: scenario {name}: {key}: a scenario sets only "
@@ -117,8 +144,8 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     prefix = spec.get("prefix", "random")
     if not isinstance(prefix, str) or not prefix:
         raise ConfigError(f"{where}.prefix = {shown(prefix)}: expected a name (the draws are PREFIX-000, ...)")
-    ranges = flatten(spec.get("ranges") or {}) if isinstance(spec.get("ranges") or {}, Mapping) else None
-    fixed = flatten(spec.get("set") or {}) if isinstance(spec.get("set") or {}, Mapping) else None
+    ranges, fixed = (flatten(spec.get(k) or {}, where=f"{where}.{k}") if isinstance(spec.get(k) or {}, Mapping)
+                     else None for k in ("ranges", "set"))
     if ranges is None or fixed is None:
         raise ConfigError(f"{where}: ranges and set are mappings of keys")
     _overrides(fixed, path, f"{prefix}-*")
@@ -127,10 +154,11 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     for key in sorted(ranges):
         r = ranges[key]
         ok = isinstance(r, (list, tuple)) and len(r) == 2 and all(
-            not isinstance(finite_number(v), str) for v in r) and r[0] <= r[1]
+            not isinstance(finite_number(v), str) for v in r) and r[0] <= r[1] and math.isfinite(
+            float(r[1]) - float(r[0]))
         if not ok:
             raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: expected [low, high], "
-                              "two finite numbers, low <= high")
+                              "two finite numbers, low <= high, high - low finite")
         if key in _INTEGER_KEYS and not all(is_seed(v) for v in r):
             raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: a seed's range is two whole numbers >= 0")
         bounds[key] = r

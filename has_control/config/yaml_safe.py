@@ -54,16 +54,25 @@ _Loader.add_implicit_resolver(
     list("-+0123456789."))
 
 
-def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{'a': {'b': 1}}`` → ``{'a.b': 1}`` (the way rclpy names nested parameters)."""
+def flatten(tree: Mapping[str, Any], prefix: str = "", where: str = "") -> dict[str, Any]:
+    """``{'a': {'b': 1}}`` → ``{'a.b': 1}`` (the way rclpy names nested
+    parameters). A name reached twice (``a.b`` given dotted and nested in
+    ``a``) is refused naming ``where`` and the name: the later one would
+    silently win."""
     flat: dict[str, Any] = {}
+    _flatten_into(flat, tree, prefix, where)
+    return flat
+
+
+def _flatten_into(flat: dict[str, Any], tree: Mapping[str, Any], prefix: str, where: str) -> None:
     for key, value in tree.items():
         name = f"{prefix}{key}"
         if isinstance(value, Mapping):
-            flat.update(flatten(value, name + "."))
+            _flatten_into(flat, value, name + ".", where)
+        elif name in flat:
+            raise ConfigError(f"{where + ': ' if where else ''}{name}: given twice (dotted and nested)")
         else:
             flat[name] = value
-    return flat
 
 
 def load_yaml(text: str, where: str, error: type[Exception] = ConfigError, what: str = "not valid YAML") -> Any:

@@ -31,7 +31,7 @@ from has_control.core.params import (
     A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_PLANT, N_SAMPLES, N_SENSOR, WIN_END, WIN_START,
     X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
 )
-from has_control.core.reference import reference, reference_array
+from has_control.core.reference import check_road_memory, reference, reference_array
 from has_control.core.scenarios import evaluate_scenarios
 
 
@@ -381,6 +381,7 @@ def evaluate_configs(gains, cfgs, workers: int | None = None) -> np.ndarray:
     Dask tasks) gives the same bits.
     """
     k = _gains_array(gains)
+    check_road_memory([(c.reference, c.episode) for c in cfgs])
     arrays = [EpisodeArrays.from_config(c) for c in cfgs]
     outs = [np.empty((k.shape[0], 6)) for _ in arrays]
     _run_blocks(k, arrays, outs, workers)

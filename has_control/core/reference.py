@@ -7,18 +7,20 @@ grid and periodic after it).
 """
 from __future__ import annotations
 
-import functools
 import math
+import threading
+from collections import OrderedDict
 
 import numpy as np
 from numba import njit
 
+from has_control.common.errors import ConfigError
 from has_control.core.jit import INLINE
 from has_control.core.params import (
     N_REFERENCE, REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE, REF_ROAD,
     REF_ROWS, REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP, Episode, Reference,
 )
-from has_control.core.road import road_table
+from has_control.core.road import MAX_ROAD_BYTES, road_bytes, road_table
 
 
 @njit(**INLINE)
@@ -70,21 +72,60 @@ def reference(rp, t):
     return off, 0.0, 0.0, 0.0
 
 
-@functools.lru_cache(maxsize=32)
-def _road_table(ref: Reference, episode: Episode) -> np.ndarray:
-    """:func:`has_control.core.road.road_table`, built once per (reference, grid):
-    every evaluation of a swarm iteration asks for the same tables."""
-    return road_table(ref, episode)
+#: The road reference arrays kept between evaluations [bytes]: every
+#: evaluation of a swarm iteration asks for the same ones. Bounded by
+#: bytes, not by count: a count of 32 made 33 road scenarios rebuild every
+#: table on every call.
+ROAD_CACHE_BYTES = 512 << 20
+_road_cache: OrderedDict = OrderedDict()
+_road_cache_lock = threading.Lock()
+
+
+def _road_array(ref: Reference, episode: Episode) -> np.ndarray:
+    """The header and :func:`has_control.core.road.road_table` of (reference,
+    grid), built once while it stays in the cache (least recently used
+    out first). The array is shared: the kernels only read it."""
+    key = (ref, episode)
+    with _road_cache_lock:
+        if key in _road_cache:
+            _road_cache.move_to_end(key)
+            return _road_cache[key]
+    table = road_table(ref, episode)
+    head = ref.as_array()
+    head[REF_ROWS] = len(table)
+    head[REF_TABLE_STEP] = episode.step
+    array = np.concatenate([head, table.ravel()])
+    with _road_cache_lock:
+        _road_cache[key] = array
+        total = sum(a.nbytes for a in _road_cache.values())
+        while total > ROAD_CACHE_BYTES and len(_road_cache) > 1:
+            _, dropped = _road_cache.popitem(last=False)
+            total -= dropped.nbytes
+    return array
+
+
+def road_cached(ref: Reference, episode: Episode) -> bool:
+    """Is the road array of (reference, grid) built already (:func:`reference_array` returns at once)?"""
+    with _road_cache_lock:
+        return (ref, episode) in _road_cache
+
+
+def check_road_memory(pairs, where: str = "scenarios") -> None:
+    """Refuse, before any table is built, road references whose tables
+    together (distinct (reference, episode) pairs) would take more than
+    :data:`has_control.core.road.MAX_ROAD_BYTES`; one line naming ``where``."""
+    need = sum(road_bytes(r, e) for r, e in set(pairs))
+    if need > MAX_ROAD_BYTES:
+        roads = sum(1 for r, _ in set(pairs) if r.kind == "road")
+        raise ConfigError(f"{where}: {roads} road references would take {need / 2**20:,.0f} MiB of tables, more "
+                          f"than the limit of {MAX_ROAD_BYTES / 2**20:,.0f} MiB (32 bytes per sample each): "
+                          "fewer road scenarios, a shorter simulation.horizon or a longer simulation.step")
 
 
 def reference_array(ref: Reference, episode: Episode) -> np.ndarray:
     """The array :func:`reference` reads: the header of ``ref``, and for a
     road its table on ``episode``'s grid (one period of the profile,
-    :func:`has_control.core.road.road_table`)."""
-    head = ref.as_array()
+    :func:`has_control.core.road.road_table`), shared with other callers."""
     if ref.kind != "road":
-        return head
-    table = _road_table(ref, episode)
-    head[REF_ROWS] = len(table)
-    head[REF_TABLE_STEP] = episode.step
-    return np.concatenate([head, table.ravel()])
+        return ref.as_array()
+    return _road_array(ref, episode)

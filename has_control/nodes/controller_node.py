@@ -15,7 +15,8 @@ the model ``actuator.*``, ``simulation.step`` and ``noise.*``: the seeded
 measurement noise the law reads on top of each state it receives (the state
 topic carries the plant's true state, which the trace and a bag keep). A parameter set that the
 core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
-and the old values stay; accepted changes apply from the next sample.
+and the old values stay; accepted changes apply from the next sample (a
+new road from the first sample after its table is built, off the executor).
 ``simulation.*`` (the step must be the plant's) is read-only after start-up.
 
 Topics (layouts in :mod:`has_control.wire.topics`): ``state`` (in), ``command``
@@ -56,6 +57,8 @@ malformed, conflicts and whether â1, â2 are within ``adaptation.lower..upper``
 import math
 import time
 
+import threading
+
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
@@ -65,6 +68,7 @@ from std_msgs.msg import Float64MultiArray
 
 from has_control.wire import steps
 from has_control.core.episode import TRACE_COLUMNS, EpisodeArrays
+from has_control.core.reference import road_cached
 from has_control.common.errors import ConfigError
 from has_control.wire.topics import (
     CLOCK_LAYOUT, COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE, CONTROLLER_STATE_LAYOUT, FORWARD_COMMAND_LAYOUT, GAINS,
@@ -137,6 +141,8 @@ class ControllerNode(LifecycleNode):
         self._pending = None
         self._entities: list = []
         self._state_topic = ""
+        self._pending_lock = threading.Lock()
+        self._generation = 0                    # accepted parameter sets: a road built for an old one is dropped
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self._tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         trigger_service(self, "~/reset", self.reset, "estimates reset to adaptation.initial")
@@ -279,8 +285,28 @@ class ControllerNode(LifecycleNode):
             reason = str(exc)
             self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
             return SetParametersResult(successful=False, reason=reason)
-        self._pending = (cfg, EpisodeArrays.from_config(cfg))    # built here (a road's table), applied next sample
+        with self._pending_lock:
+            self._generation += 1
+            generation = self._generation
+            self._pending = None
+        if cfg.reference.kind == "road" and not road_cached(cfg.reference, cfg.episode):
+            # a road's table takes O(n log n) (0.07 s for 10 s at 1.6 kHz cutoff): built off the executor,
+            # applied at the first sample after it is ready; the old reference runs meanwhile
+            threading.Thread(target=self._build, args=(cfg, generation), name="controller-road", daemon=True).start()
+        else:
+            self._build(cfg, generation)
         return SetParametersResult(successful=True)
+
+    def _build(self, cfg, generation: int) -> None:
+        """The arrays of an accepted parameter set, pending for the next sample unless a newer set came."""
+        try:
+            arrays = EpisodeArrays.from_config(cfg)
+        except (MemoryError, ConfigError) as exc:
+            self.get_logger().error(f"cannot build the reference of the accepted parameters: {exc}")
+            return
+        with self._pending_lock:
+            if generation == self._generation:
+                self._pending = (cfg, arrays)
 
     # --- control loop: read -> update -> write --------------------------------
     def _sample(self, data: bytes) -> int:
@@ -304,8 +330,9 @@ class ControllerNode(LifecycleNode):
                 f"{self.count_publishers(self._state_topic)} publishers on {self._state_topic}; "
                 f"{self.conflicts} conflicting states so far", throttle_duration_sec=5.0)
         if self._pending is not None:
-            self._apply(*self._pending)
-            self._pending = None
+            with self._pending_lock:
+                pending, self._pending = self._pending, None
+            self._apply(*pending)
             self._announce = True
         i = steps.controller_sample(data, self._mem, self._gains, self.ap, self.cp, self.rp, self.sp, self.seed,
                                     self.dt, self.step_ns, self._command, self._internals, self._reference, self.trace)
@@ -351,8 +378,9 @@ class ControllerNode(LifecycleNode):
         if not (math.isfinite(x[0]) and math.isfinite(x[1]) and math.isfinite(x[2]) and math.isfinite(x[3])):
             return self._refused("a non-finite value")
         if self._pending is not None:
-            self._apply(*self._pending)
-            self._pending = None
+            with self._pending_lock:
+                pending, self._pending = self._pending, None
+            self._apply(*pending)
             self._announce = True
         i = self._next
         steps.encode_state(x, self.ap, i, self.step_ns, self._state_buf, self._clock_buf, self._scratch)

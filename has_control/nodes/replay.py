@@ -119,6 +119,14 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
     except (BagError, IndexError):
         pass                                          # the stored parameters' gains
     n = min(len(states), len(recorded_u))
+    step_ns = int(round(cfg.episode.step * 1e9))
+    stamps = cdr.stamps_ns([d for _, d in states[:n]])
+    off = np.flatnonzero(stamps % step_ns)
+    if off.size:                      # the controller would refuse each one and time out on it
+        k = int(off[0])
+        raise BagError(f"{path}: state {k} is stamped {int(stamps[k])} ns, off the grid of simulation.step = "
+                       f"{cfg.episode.step:g} s the bag's parameters give ({off.size} of {n} states off it): "
+                       "metadata.yaml edited, or recorded with another step")
     with borrowed_context(context) as context:
         if node is None:
             ns = "/replay"
@@ -129,7 +137,6 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
             ns, controller = node.rsplit("/", 1)[0], None
         driver = rclpy.create_node("replay_driver", namespace=ns or "/", context=context)
         answers: dict[int, float] = {}
-        step_ns = int(round(cfg.episode.step * 1e9))
         pub = driver.create_publisher(JointState, "state", CONTROL_QOS)
         driver.create_subscription(JointState, "command",
                                    lambda m: answers.__setitem__(sample_of(m.header.stamp, step_ns),
@@ -145,7 +152,7 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
             if time.monotonic() > end:
                 raise BagError(f"replay: the controller {node or 'built from the bag'} did not connect within 10 s")
             ex.spin_once(timeout_sec=0.01)
-        idx = cdr.stamps_ns([d for _, d in states[:n]]) // step_ns
+        idx = stamps // step_ns
         diffs = np.full(n, np.inf)
         for k in range(n):
             i = int(idx[k])

@@ -5,12 +5,17 @@ Names, types, joints and wire layouts of the topics are in
 """
 from __future__ import annotations
 
+import sys
 from contextlib import contextmanager
 
+import rclpy
 from builtin_interfaces.msg import Time
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 
+from has_control.common.errors import HasControlError, shown
+from has_control.config.params_file import read_parameter_file
 from has_control.core.actuator import joint_state
 from has_control.core.params import Actuator
 from has_control.wire.topics import QOS, STATE, STATE_NAMES
@@ -69,7 +74,6 @@ def raw_publish(publisher, tap=None):
 def borrowed_context(context=None, args=None, domain_id: int | None = None):
     """``context`` itself, or (None) a new initialised rclpy context that is
     shut down on the way out."""
-    import rclpy
     if context is not None:
         yield context
         return
@@ -103,7 +107,6 @@ def spin(executor, done=lambda: False, period: float = 0.1) -> None:
 
     rclpy 9.1's ``EventsExecutor.spin()`` busy-loops at full CPU and does not
     return on a signal here; ``spin_once`` with a timeout does neither."""
-    import rclpy
     while rclpy.ok(context=executor.context) and not done():
         executor.spin_once(timeout_sec=period)
 
@@ -115,17 +118,19 @@ def node_main(args, make_node, serve) -> None:
     A bad parameter at start-up ends in one line naming it and exit status 2;
     Ctrl-C and SIGTERM end the node cleanly."""
     import gc
-    import sys
 
-    import rclpy
     from rclpy.exceptions import NameValidationException, ParameterException
     from rclpy.executors import ExternalShutdownException
     from rclpy.experimental import EventsExecutor
 
-    from has_control.common.errors import HasControlError
     prog = (args or sys.argv)[0].split("/")[-1] if (args or sys.argv) else "node"
     try:
-        with rclpy.init(args=args):
+        check_params_files(args if args is not None else sys.argv)
+    except HasControlError as exc:
+        print(f"{prog}: error: {exc}".splitlines()[0], file=sys.stderr)
+        raise SystemExit(2) from None
+    try:
+        with _init(args, prog):
             try:
                 node = make_node()
             except (HasControlError, ValueError, ParameterException, NameValidationException) as exc:
@@ -137,6 +142,47 @@ def node_main(args, make_node, serve) -> None:
             serve(executor, node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+
+
+def params_files(argv) -> list[str]:
+    """The files of ``--params-file FILE`` in a command line's ROS arguments."""
+    argv = list(argv or [])
+    out = []
+    for i, a in enumerate(argv):
+        if a == "--params-file":
+            if i + 1 >= len(argv) or argv[i + 1].startswith("--"):
+                raise HasControlError("--params-file: expects a file")
+            out.append(argv[i + 1])
+    return out
+
+
+def check_params_files(argv) -> None:
+    """Before ``rclpy.init``: each ``--params-file`` read by the project's own
+    reader (:func:`has_control.config.params_file.read_parameter_file`: a
+    regular UTF-8 file of bounded size, safe YAML, a ``ros__parameters``
+    section under every top-level key, no key given twice), so a bad file is
+    one line naming it instead of rcl's "Couldn't parse params file". The
+    values are checked when the node declares them."""
+    for f in params_files(argv):
+        for key, value in read_parameter_file(f, node="/start_up_check").items():
+            if isinstance(value, list) and len({type(v) for v in value}) > 1:
+                raise HasControlError(f"{f}: {key} = {shown(value)}: a ROS parameter's list holds one type")
+
+
+@contextmanager
+def _init(args, prog: str):
+    """``rclpy.init(args=args)``; what rcl refuses after our own check (a
+    value rcl's parser does not take) is one line and exit 2."""
+    try:
+        init = rclpy.init(args=args)
+    except RCLError as exc:
+        why = " ".join(str(exc).split())
+        files = params_files(args if args is not None else sys.argv)
+        print(f"{prog}: error: {', '.join(files) + ': ' if files else ''}ROS refused the arguments: {why[:200]}",
+              file=sys.stderr)
+        raise SystemExit(2) from None
+    with init:
+        yield
 
 
 def trigger_service(node, name: str, action, message: str):

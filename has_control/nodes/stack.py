@@ -15,6 +15,7 @@ from typing import Callable
 
 import numpy as np
 import rclpy
+from rclpy.logging import LoggingSeverity
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 
@@ -244,6 +245,8 @@ def _stop_on_signals(plant, interrupted: list | None) -> None:
     def stop(signum, frame):
         interrupted.append(signum)
         plant.finished = True
+        # the run's summary lines are for a finished run: an interrupted one ends in one line, "interrupted"
+        plant.get_logger().set_level(LoggingSeverity.WARN)
     for sig in (signal.SIGINT, signal.SIGTERM):
         _previous[sig] = signal.signal(sig, stop)
 

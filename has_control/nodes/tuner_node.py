@@ -57,7 +57,7 @@ from has_control.bag import BagError, score_bag
 from has_control.common.errors import ConfigError, HasControlError
 from has_control.core.episode import simulate
 from has_control.tuning.swarm import Swarm
-from has_control.tuning.tuner import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
+from has_control.tuning.tuner import Tuning, load_tuning, robust_tuning, tuning_from_parameters, tuning_parameters
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 from has_control.nodes.recorder import Recorder
 from has_control.wire.topics import PROGRESS_LAYOUT
@@ -283,18 +283,12 @@ class TunerNode(Node):
 
     def _robust(self, tuning: Tuning) -> Tuning:
         """``tuning`` scored on the scenarios of parameter ``scenarios`` (a file; empty: the nominal episode)."""
-        from has_control.core.scenarios import parse_aggregate
-        from has_control.config import load_scenarios
         path, how = self.get_parameter("scenarios").value, self.get_parameter("aggregate").value
-        if not path:
-            return tuning
-        if self.evaluator == "graph":
+        if path and self.evaluator == "graph":
             raise ConfigError(f"parameter scenarios = {path!r}: needs evaluator batch (the lanes run one plant)")
-        try:
-            aggregate = parse_aggregate(how)
-        except ConfigError as exc:
-            raise ConfigError(f"parameter {exc}") from None
-        return tuning.replace(scenarios=load_scenarios(path, self.cfg), aggregate=aggregate)
+        # checked as tune's --scenarios/--aggregate; "mean" (the default) without scenarios is the nominal episode
+        return robust_tuning(tuning, self.cfg, path, how if path or how != "mean" else None,
+                             ("parameter scenarios", "parameter aggregate"))
 
     # --- session -------------------------------------------------------------
     def start(self) -> None:

@@ -26,6 +26,8 @@ is started, so :func:`parse_spec` costs nothing.
 from __future__ import annotations
 
 import argparse
+import asyncio
+import logging
 import math
 import re
 import uuid
@@ -83,7 +85,7 @@ def parse_spec(text: str) -> str:
         count = spec[len("local:"):].strip()
         if not re.fullmatch(r"[0-9]+", count):
             raise SpecError(f"dask spec {shown(text)}: local:N needs a whole number N of worker processes")
-        n = int(count)
+        n = int(count) if len(count.lstrip("0")) <= 6 else math.inf       # not int() of 5 000 digits
         if not 1 <= n <= MAX_LOCAL_WORKERS:
             raise SpecError(f"dask spec {shown(text)}: local:N needs 1 <= N <= {MAX_LOCAL_WORKERS} worker processes")
         return f"local:{n}"
@@ -165,6 +167,37 @@ def _one_line(exc: BaseException, limit: int = 240) -> str:
     return text if len(text) <= limit else text[:limit - 1] + "…"
 
 
+def probe_scheduler(spec: str, timeout: float) -> None:
+    """Ask ``spec`` (tcp://host:port) who it is, everything within ``timeout``
+    seconds: connect, Dask's handshake, an ``identity`` request. Anything but
+    a Dask scheduler's answer (a closed port, a web server, a listener that
+    stays silent or sends garbage) is one :class:`ClusterError` line; a
+    ``Client`` would wait for the handshake for ever or fail in a traceback."""
+    # lazy: distributed takes about 1 s to load; only --dask needs it
+    from distributed.comm import connect
+
+    async def ask():
+        comm = await connect(spec, timeout=timeout)
+        try:
+            await comm.write({"op": "identity", "reply": True})
+            return await comm.read()
+        finally:
+            comm.abort()
+
+    async def bounded():
+        return await asyncio.wait_for(ask(), timeout)
+    try:
+        answer = asyncio.run(bounded())
+    except (asyncio.TimeoutError, TimeoutError):
+        raise ClusterError(f"dask spec {spec}: no Dask scheduler answered within {timeout:g} s") from None
+    except OSError as exc:                          # refused, reset, the connect timed out
+        raise ClusterError(f"dask spec {spec}: no Dask scheduler there ({_one_line(exc, 120)})") from None
+    except Exception:                               # garbage that msgpack reads as a 3 EiB frame, ...
+        raise ClusterError(f"dask spec {spec}: not a Dask scheduler (its answer is not Dask's protocol)") from None
+    if not isinstance(answer, dict) or answer.get("type") != "Scheduler":
+        raise ClusterError(f"dask spec {spec}: not a Dask scheduler (it answered {shown(answer)})")
+
+
 class DaskBatch:
     """A batch evaluator on a Dask cluster: ``batch(gains, cfgs)`` has the
     contract of :func:`~has_control.core.episode.evaluate_configs`.
@@ -207,9 +240,11 @@ class DaskBatch:
                                f"(pip install 'has_control[dask]'): {exc}") from None
         if self.spec.startswith("local:"):
             self.cluster = LocalCluster(n_workers=self.min_workers, threads_per_worker=1, processes=True,
-                                        host="127.0.0.1", dashboard_address=None)
+                                        host="127.0.0.1", dashboard_address=None,
+                                        preload=[dask_worker.__name__])      # its dask_setup: Ctrl-C is ours
             self.client = Client(self.cluster, set_as_default=False)
         else:
+            probe_scheduler(self.spec, self.connect_timeout)
             try:
                 self.client = Client(self.spec, timeout=self.connect_timeout, set_as_default=False)
             except (OSError, TimeoutError) as exc:
@@ -298,9 +333,17 @@ class DaskBatch:
         except (OSError, CancelledError) as exc:             # OSError: CommClosedError, TimeoutError
             raise ClusterError(f"dask spec {self.spec}: lost the cluster ({type(exc).__name__}: "
                                f"{_one_line(exc)})") from None
+        except KeyboardInterrupt:                            # Ctrl-C, SIGTERM: see _quiet
+            _quiet()
+            raise
         for (s, lo, hi), part in zip(tasks, parts):
             out[lo:hi, s] = part
         return out
+
+    def __exit__(self, kind, *exc) -> None:
+        if kind is not None and issubclass(kind, KeyboardInterrupt):
+            _quiet()
+        self.close()
 
     def close(self) -> None:
         """Remove the Config store, disconnect, and stop ``local:N``'s processes."""
@@ -320,8 +363,15 @@ class DaskBatch:
     def __enter__(self) -> "DaskBatch":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+
+def _quiet() -> None:
+    """After Ctrl-C or SIGTERM the command ends in one line, "interrupted":
+    closing the client cancels its gathers, and each cancelled one would log
+    "Task exception was never retrieved ... AllExit" with a traceback (885 of
+    them for one robustness table), and the cluster's shutdown its own
+    warnings. Nothing they say matters to an interrupted command."""
+    for name in ("asyncio", "distributed", "tornado"):
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
 
 def dask_batch(spec: str, **options) -> DaskBatch:

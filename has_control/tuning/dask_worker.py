@@ -4,11 +4,23 @@ the client imports this module only when it starts a batch.
 """
 from __future__ import annotations
 
+import signal
+import threading
+
 import numpy as np
 from distributed import WorkerPlugin, get_worker
 
 from has_control.core.episode import evaluate_configs
 from has_control.core.params import Config
+
+
+def dask_setup(worker) -> None:
+    """Run by ``local:N``'s worker processes at start-up (a ``preload``):
+    Ctrl-C at the terminal reaches the whole process group, but the workers
+    are this command's to stop (it closes the cluster when interrupted);
+    each would otherwise print its own traceback."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 class ConfigStore(WorkerPlugin):

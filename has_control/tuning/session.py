@@ -26,11 +26,16 @@ import shutil
 import time
 from pathlib import Path
 
+import numpy as np
+
 from has_control.bag import (
     PARAMETERS_KEY, STRING, BagError, BagWriter, QosSpec, parameters_json, read_bag, warn, write_trace,
 )
-from has_control.common.errors import HasControlError
+from has_control.bag.read import parameters_from_json
+from has_control.common.errors import HasControlError, shown
 from has_control.common.files import DirectoryLock
+from has_control.common.json_bounded import loads_bounded
+from has_control.config import build_config
 from has_control.tuning.swarm import Swarm, record_dict, record_from
 from has_control.tuning.tuner import TuneResult, Tuning, tuning_from_json, tuning_json
 
@@ -54,10 +59,11 @@ def _unstring(data: bytes) -> str:
 
 
 def _json(data: bytes) -> dict | None:
-    """The JSON object a std_msgs/String message carries, None if it is damaged."""
+    """The JSON object a std_msgs/String message carries (nesting bounded),
+    None if it is damaged or anything else."""
     try:
-        doc = json.loads(_unstring(data))
-    except (ValueError, UnicodeDecodeError):
+        doc = loads_bounded(_unstring(data), "record")
+    except (HasControlError, UnicodeDecodeError):
         return None
     return doc if isinstance(doc, dict) else None
 
@@ -140,7 +146,6 @@ def resume(directory: str | Path, on_warning=warn) -> Resumed:
     result. A session whose result is stored but whose ``tune.json`` is not
     (the final writes were interrupted) comes back with ``result`` set.
     """
-    from has_control.config import build_config
     d = Path(directory)
     old = d / (SESSION + ".interrupted")
     cur = d / SESSION
@@ -153,22 +158,20 @@ def resume(directory: str | Path, on_warning=warn) -> Resumed:
     elif cur.exists():
         cur.rename(old)
     bag = read_bag(old, topics=(SETTINGS, ITERATION, SWARM, RESULT), on_warning=on_warning)
-    results = [r for r in (_json(x) for _, x in bag.messages.get(RESULT) or []) if r is not None]
+    results = [r for r in (_json(x) for _, x in bag.messages.get(RESULT) or []) if _result_ok(r)]
     if results and (d / RESULT_FILE).exists():
         old.rename(cur)
         lock.release()
         raise BagError(f"{cur}: the session has finished already (see {d / RESULT_FILE})")
-    settings = bag.messages.get(SETTINGS) or []
-    s = _json(settings[0][1]) if settings else None
     try:
-        tuning = tuning_from_json(s["tuning"])
-    except (TypeError, KeyError, ValueError, AttributeError):
+        restored = restore(bag.messages, old)
+    except HasControlError:
         lock.release()
-        raise BagError(f"{old}: no readable {SETTINGS} message; cannot resume") from None
-    cfg = build_config(s.get("parameters") or {}, source=f"{old} ({SETTINGS})")
+        raise
+    tuning, cfg, evaluator, k, swarm = restored
+    settings = bag.messages.get(SETTINGS) or []
     states = bag.messages.get(SWARM) or []
     records = bag.messages.get(ITERATION) or []
-    k, swarm = _last_good_iteration(records, states)
     if k < max(len(records), len(states)) or not bag.complete:
         on_warning(f"{old}: records damaged or missing after iteration {k}: resuming from iteration {k}, "
                    "the last good one")
@@ -177,15 +180,67 @@ def resume(directory: str | Path, on_warning=warn) -> Resumed:
     keep = [(SETTINGS, *settings[0])]
     keep += [(ITERATION, *r) for r in records[:k]] + [(SWARM, *x) for x in states[:k]]
     keep.sort(key=lambda m: m[1])
-    session = Session(d, tuning, cfg, s.get("evaluator", "batch"), _copy_from=keep, _lock=lock)
+    session = Session(d, tuning, cfg, evaluator, _copy_from=keep, _lock=lock)
     shutil.rmtree(old)
-    return Resumed(swarm, tuning, cfg, s.get("evaluator", "batch"), session,
-                   results[-1] if results and swarm.done else None)
+    return Resumed(swarm, tuning, cfg, evaluator, session, results[-1] if results and swarm.done else None)
 
 
-def _last_good_iteration(records, states) -> tuple[int, Swarm | None]:
+def restore(messages: dict, where) -> tuple[Tuning, object, str, int, Swarm | None]:
+    """What a session's messages (topic: [(time, bytes)]) say, every record
+    checked: (tuning, cfg, evaluator, k, the swarm after its last good
+    iteration k, None for 0). The settings pass the command line's checks
+    (a session edited by hand resumes only if ``tune`` would start it) or
+    are one line naming ``where``; a damaged or inconsistent iteration ends
+    the good ones (:func:`_last_good_iteration`)."""
+    settings = messages.get(SETTINGS) or []
+    s = _json(settings[0][1]) if settings else None
+    if s is None or not isinstance(s.get("tuning"), dict):
+        raise BagError(f"{where}: no readable {SETTINGS} message; cannot resume")
+    where = f"{where} ({SETTINGS})"
+    try:
+        if not isinstance(s.get("parameters"), dict):
+            raise BagError(f"{where}: parameters = {shown(s.get('parameters'))}: expected an object of "
+                           "parameter names to values")
+        if s.get("evaluator", "batch") not in EVALUATORS:
+            raise BagError(f"{where}: evaluator = {shown(s.get('evaluator'))}: expected one of "
+                           f"{', '.join(EVALUATORS)}")
+        # the checks the command line's settings pass: a session edited by hand resumes only if tune would start it
+        cfg = build_config(parameters_from_json(json.dumps(s["parameters"]), f"{where}: parameters"), source=where)
+        tuning = tuning_from_json(s["tuning"], f"{where}: tuning", cfg)
+    except HasControlError as exc:
+        raise BagError(f"{exc}; cannot resume") from None
+    k, swarm = _last_good_iteration(messages.get(ITERATION) or [], messages.get(SWARM) or [], tuning)
+    return tuning, cfg, s.get("evaluator", "batch"), k, swarm
+
+
+#: What a session may name as its evaluator.
+EVALUATORS = ("batch", "dask", "graph")
+
+
+def _result_ok(r) -> bool:
+    """A stored result with what resuming a finished session reads from it."""
+    return (isinstance(r, dict) and isinstance(r.get("variant"), str) and isinstance(r.get("seed"), int)
+            and not isinstance(r.get("seed"), bool) and isinstance(r.get("seconds"), (int, float))
+            and isinstance(r.get("scenarios", 0), int) and isinstance(r.get("aggregate", ""), str))
+
+
+def _fits(swarm: Swarm, tuning: Tuning, k: int) -> bool:
+    """Is a restored swarm the session's after k iterations: its settings,
+    bounds and seed, P particles of 3 gains everywhere (P: swarm.particles)?"""
+    p = tuning.swarm.particles
+    return (swarm.settings == tuning.swarm and swarm.seed == tuning.seed and swarm.iteration == k
+            and tuple(swarm.lower) == tuple(tuning.lower) and tuple(swarm.upper) == tuple(tuning.upper)
+            and swarm.x.shape == swarm.v.shape == swarm.pbest_x.shape == (p, 3)
+            and swarm.pbest_f.shape == (p,) and np.shape(swarm.gbest_x) == (3,)
+            and min(swarm.evaluations, swarm.nan_costs) >= 0
+            and all(h.positions.shape == (p, 3) and np.shape(h.costs) == (p,) and np.shape(h.best_position) == (3,)
+                    for h in swarm.history))
+
+
+def _last_good_iteration(records, states, tuning: Tuning) -> tuple[int, Swarm | None]:
     """The largest k such that iterations 0..k-1 each have a record and a
-    swarm state that parse and agree, and the swarm restored from state k-1."""
+    swarm state that parse and agree, and the swarm restored from state k-1
+    fits the session's settings (:func:`_fits`)."""
     k = 0
     parsed = []
     for (_, r), (_, x) in zip(records, states):
@@ -198,9 +253,10 @@ def _last_good_iteration(records, states) -> tuple[int, Swarm | None]:
         state = dict(parsed[k - 1][1], history=[rec for rec, _ in parsed[:k]])
         try:
             swarm = Swarm.from_state(state)
-            if len(swarm.history) == k and all(h.iteration == i for i, h in enumerate(swarm.history)):
+            if (len(swarm.history) == k and all(h.iteration == i for i, h in enumerate(swarm.history))
+                    and _fits(swarm, tuning, k)):
                 return k, swarm
-        except (HasControlError, KeyError, TypeError, ValueError, IndexError):
+        except (HasControlError, KeyError, TypeError, ValueError, IndexError, ArithmeticError):
             pass
         k -= 1
     return 0, None
@@ -212,7 +268,10 @@ def swarm_result(directory: str | Path):
     import math
     from has_control.tuning.swarm import SwarmResult
     bag = read_bag(Path(directory) / SESSION, topics=(ITERATION, RESULT), on_warning=lambda m: None)
-    history = [record_from(json.loads(_unstring(d))) for _, d in bag.messages.get(ITERATION, [])]
+    try:
+        history = [record_from(_json(d)) for _, d in bag.messages.get(ITERATION, [])]
+    except (TypeError, KeyError, ValueError, IndexError):
+        raise BagError(f"{Path(directory) / SESSION}: an iteration record is damaged") from None
     if not history:
         raise BagError(f"{Path(directory) / SESSION}: no iteration records")
     last = history[-1]

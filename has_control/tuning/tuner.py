@@ -14,8 +14,8 @@ from typing import Any, Callable, Iterable, Mapping
 import numpy as np
 
 from has_control.config import (
-    SEED_RANGE, Scenario, check_gain, default_config_files, finite_number, is_seed, read_parameter_files,
-    scenario_configs, scenarios_from_json,
+    SEED_RANGE, Scenario, check_gain, check_scenarios, default_config_files, finite_number, is_seed,
+    load_scenarios, read_parameter_files, scenario_configs, scenarios_from_json,
 )
 from has_control.core.episode import evaluate_configs
 from has_control.common.errors import ConfigError, shown
@@ -123,9 +123,54 @@ def tuning_json(t: Tuning) -> dict:
     return d
 
 
-def tuning_from_json(d: dict) -> Tuning:
-    return Tuning(SwarmSettings(**d["swarm"]), tuple(d["lower"]), tuple(d["upper"]), int(d["seed"]),
-                  scenarios_from_json(d.get("scenarios", ())), parse_aggregate(d.get("aggregate", "mean")))
+def tuning_from_json(d: dict, where: str = "tuning settings", cfg: Config | None = None) -> Tuning:
+    """A stored Tuning (a session's settings), through the checks the command
+    line's settings pass: the ``swarm.*`` parameters as a config file's
+    (:func:`tuning_from_parameters`), the scenarios as a scenario file's
+    (:func:`~has_control.config.check_scenarios`, over ``cfg``), the
+    aggregate as ``--aggregate``'s. One ConfigError line naming ``where``."""
+    keys = {"swarm", "lower", "upper", "seed"}
+    if not isinstance(d, dict) or not keys <= set(d) or not isinstance(d["swarm"], dict):
+        raise ConfigError(f"{where}: expected an object with {', '.join(sorted(keys))}")
+    extra = sorted(set(d) - keys - {"scenarios", "aggregate"})
+    if extra:
+        raise ConfigError(f"{where}: {shown(extra[0])}: unknown key")
+    if ("aggregate" in d) != ("scenarios" in d):
+        raise ConfigError(f"{where}: scenarios and aggregate go together")
+    missing = sorted({f.name for f in dataclasses.fields(SwarmSettings)} - set(d["swarm"]))
+    if missing:
+        raise ConfigError(f"{where}: swarm.{missing[0]}: missing")
+    flat = {f"swarm.{k}": v for k, v in d["swarm"].items()}
+    flat.update({"swarm.lower": d["lower"], "swarm.upper": d["upper"], "swarm.seed": d["seed"]})
+    t = tuning_from_parameters(flat, {k: where for k in flat})
+    if "scenarios" not in d:
+        return t
+    scenarios = check_scenarios(scenarios_from_json(d["scenarios"], f"{where}: scenarios"), cfg or Config(),
+                                f"{where}: scenarios")
+    return t.replace(scenarios=scenarios, aggregate=aggregate_arg(d["aggregate"], f"{where}: aggregate"))
+
+
+def aggregate_arg(text, name: str) -> Aggregate:
+    """:func:`~has_control.core.scenarios.parse_aggregate` of a value given as ``name``."""
+    if not isinstance(text, str):
+        raise ConfigError(f"{name} = {shown(text)}: expected mean, max or cvar:ALPHA")
+    try:
+        return parse_aggregate(text)
+    except ConfigError as exc:
+        raise ConfigError(f"{name}: {exc}") from None
+
+
+def robust_tuning(tuning: Tuning, cfg: Config, scenarios: str | None, aggregate: str | None,
+                  names: tuple[str, str] = ("--scenarios", "--aggregate")) -> Tuning:
+    """``tuning`` scored on the scenario file ``scenarios`` with ``aggregate``
+    (None: mean), as every front end takes them (``tune``, the tuner node):
+    an aggregate without scenarios is refused, an empty one too."""
+    agg = aggregate_arg(aggregate, names[1]) if aggregate is not None else None
+    if not scenarios:
+        if aggregate is not None:
+            raise ConfigError(f"{names[1]} {shown(aggregate)}: needs {names[0]} FILE")
+        return tuning
+    return tuning.replace(scenarios=load_scenarios(scenarios, cfg), aggregate=agg or Aggregate("mean"))
 
 
 def load_tuning(paths: Iterable[str | Path] = (), defaults: bool = True) -> Tuning:
