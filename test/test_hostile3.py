@@ -81,7 +81,7 @@ def test_a_symlink_is_written_through_and_stays_a_link(capsys, tmp_path):
     link.symlink_to(target.name)
     assert main(["simulate", "--duration", "1.2", "--trace", str(link)]) == 0
     capsys.readouterr()
-    assert link.is_symlink() and target.read_text().startswith("t,x1d,y")
+    assert link.is_symlink() and target.read_text().startswith("t [s],x1d [m],y [m]")
     assert write_atomic(link, "new\n") == link and link.is_symlink() and target.read_text() == "new\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.csv", "t.csv"]       # no temporary file left
 
