@@ -204,6 +204,35 @@ def test_a_bag_converted_by_rosbags_convert_plots_like_the_original(recorded, tm
     assert r.returncode == 0 and (tmp_path / "c.pdf").read_bytes()[:4] == b"%PDF", r.stderr
 
 
+def test_a_bag_from_another_recorder_plots_on_its_own_grid(recorded, tmp_path):
+    """Wall-clock stamps with jitter, no parameters (a real machine's bag): the
+    grid starts at the first state, Δt is the stamps' median step."""
+    d, cfg = recorded
+    run = recorded_run(read_bag(d))
+    n, t0 = len(run.t), 1_764_600_000_123_456_789
+    stamps = t0 + np.arange(n) * 300_000 + np.random.default_rng(1).integers(-40_000, 40_000, n)
+    zeros = np.zeros(n)
+    with BagWriter(tmp_path / "machine") as w:
+        for topic, ty, msgs in (
+                ("/hw/state", "sensor_msgs/msg/JointState", cdr.encode_joint_states(
+                    stamps, ["chamber_2", "actuator", "chamber_1"], np.column_stack([zeros, run.y, zeros]),
+                    np.column_stack([zeros, run.ydot, zeros]), np.column_stack([run.p2, zeros, run.p1]))),
+                ("/hw/command", "sensor_msgs/msg/JointState", cdr.encode_joint_states(
+                    stamps, ["valve"], run.u[:, None])),
+                ("/hw/controller/reference", "std_msgs/msg/Float64MultiArray", cdr.encode_float64_arrays(
+                    np.column_stack([stamps / 1e9, run.x1d, zeros, zeros, zeros])))):
+            w.add_topic(topic, ty)
+            for t, m in zip(stamps, msgs):
+                w.write(topic, int(t), m)
+    s = run_series(tmp_path / "machine", on_warning=lambda m: None)
+    assert s.cfg.episode.step == pytest.approx(3e-4, rel=1e-3) and len(s.t) == n
+    np.testing.assert_array_equal(s.y, run.y)                 # joints found by name, not by position
+    np.testing.assert_array_equal(s.p1, run.p1)
+    np.testing.assert_allclose(s.e1, run["e1"], rtol=0, atol=1e-15)
+    r = cli("plot", tmp_path / "machine", "--out", tmp_path / "m.png")
+    assert r.returncode == 0, r.stderr
+
+
 def test_a_tuner_sessions_validation_bag_and_the_tune_figures(tmp_path):
     out = tmp_path / "tuned"
     r = cli("tune", "--particles", "4", "--iterations", "2", "--duration", HORIZON, "--out", out, "--json")

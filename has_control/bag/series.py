@@ -95,8 +95,9 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
         raise BagError(f"{bag.path}: no messages on {st}")
     stamps = cdr.stamps_ns([d for _, d in states])
     names, pos, vel, eff = cdr.joint_states([d for _, d in states], f"{bag.path}: {st}")
-    cfg, step = _config(bag, stamps, overrides)
-    idx = _samples(stamps, step, f"{bag.path}: {st}")
+    cfg, grid = _config(bag, stamps, overrides)
+    step = grid.step
+    idx = grid.samples(stamps, f"{bag.path}: {st}")
     n = int(idx.max()) + 1
     col = _joint_columns(names, STATE_NAMES, f"{bag.path}: {st}")
     out = {k: _on_grid(n, idx, v) for k, v in (
@@ -114,18 +115,18 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
     cm = _optional(bag, COMMAND, JOINT_STATE)
     if cm:
         cnames, cpos, _, _ = cdr.joint_states([d for _, d in bag.messages[cm]], f"{bag.path}: {cm}")
-        rows = _samples(cdr.stamps_ns([d for _, d in bag.messages[cm]]), step, f"{bag.path}: {cm}")
+        rows = grid.samples(cdr.stamps_ns([d for _, d in bag.messages[cm]]), f"{bag.path}: {cm}")
         u = _on_grid(n, rows, cpos[:, _joint_columns(cnames, COMMAND_NAMES, f"{bag.path}: {cm}")[0]])
         gaps(COMMAND, rows)
     x1d = a1 = a2 = np.full(n, math.nan)
     cs = _optional(bag, CONTROLLER_STATE, FLOAT64_ARRAY)
     if cs:
-        rows, data = _arrays(bag, cs, CONTROLLER_STATE_COLUMNS, step)
+        rows, data = _arrays(bag, cs, CONTROLLER_STATE_COLUMNS, grid)
         c = CONTROLLER_STATE_COLUMNS.index
         a1, a2, x1d = (_on_grid(n, rows, data[:, c(k)]) for k in ("a1_hat", "a2_hat", "x1d"))
     rf = _optional(bag, REFERENCE, FLOAT64_ARRAY)
     if rf:
-        rows, data = _arrays(bag, rf, REFERENCE_COLUMNS, step)
+        rows, data = _arrays(bag, rf, REFERENCE_COLUMNS, grid)
         x1d = _on_grid(n, rows, data[:, REFERENCE_COLUMNS.index("x1d")])
         gaps(REFERENCE, rows)
     elif not cs:
@@ -133,14 +134,14 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
                        "no reference to plot the error against")
     if PARAMETERS_KEY in bag.custom_data:
         x1d = _fill_reference(x1d, cfg, step)
-    gt, gk = _gains(bag, cfg)
-    missed, failsafe = _missed(bag, step)
+    gt, gk = _gains(bag, cfg, grid)
+    missed, failsafe = _missed(bag, grid)
     return RunSeries(Path(bag.path).name or str(bag.path), cfg, np.arange(n) * step, out["y"], out["ydot"],
                      out["p1"], out["p2"], u, x1d, a1, a2, gt, gk, missing, PARAMETERS_KEY in bag.custom_data,
                      missed, failsafe)
 
 
-def _missed(bag: Bag, step: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _missed(bag: Bag, grid: _Grid) -> tuple[np.ndarray | None, np.ndarray | None]:
     """(missed samples, fail-safe samples) from ``…/plant/missed`` if the bag
     has that topic (a realtime stack's bag: no messages, no misses), else (None, None)."""
     hits = [t for t, ty in bag.types.items() if (t == "/" + MISSED or t.endswith("/" + MISSED))
@@ -150,25 +151,64 @@ def _missed(bag: Bag, step: float) -> tuple[np.ndarray | None, np.ndarray | None
     topic = bag.find(MISSED, FLOAT64_ARRAY)
     if not bag.messages[topic]:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    rows, data = _arrays(bag, topic, MISSED_COLUMNS, step)
+    rows, data = _arrays(bag, topic, MISSED_COLUMNS, grid)
     return rows, rows[data[:, MISSED_COLUMNS.index("failsafe")] > 0.5]
 
 
-def _config(bag: Bag, stamps: np.ndarray, overrides) -> tuple[Config, float]:
-    """The run's Config and Δt [s]. Without stored parameters: the shipped
-    configuration with Δt from the stamps and the horizon of the recording."""
+@dataclass(frozen=True)
+class _Grid:
+    """The sample grid: sample i is stamped origin + i·Δt [ns]; a stamp may be
+    off it by ``tolerance`` of a period (0.001: our bags; 0.25: another recorder's)."""
+
+    origin_ns: int
+    step: float
+    tolerance: float
+
+    def samples(self, stamps_ns: np.ndarray, what: str) -> np.ndarray:
+        """Sample index of each stamp; refused if off the grid or before the first sample."""
+        x = (np.asarray(stamps_ns).astype(np.int64) - self.origin_ns) / (self.step * 1e9)
+        idx = np.rint(x).astype(np.int64)
+        off = np.abs(x - idx) > self.tolerance
+        if off.any() or (idx < 0).any():
+            k = int(np.argmax(off | (idx < 0)))
+            raise BagError(f"{what}: message {k} is stamped {stamps_ns[k] / 1e9:.9f} s, "
+                           f"not on the sample grid of {self.step * 1e3:g} ms from {self.origin_ns / 1e9:.9f} s")
+        if len(idx) and idx.max() > 100 * len(idx) + 1_000_000:
+            raise BagError(f"{what}: stamps up to sample {idx.max()} for {len(idx)} messages: not one run")
+        return idx
+
+
+def _config(bag: Bag, stamps: np.ndarray, overrides) -> tuple[Config, _Grid]:
+    """The run's Config and sample grid. Without stored parameters: the
+    shipped configuration with Δt from the stamps, the horizon of the
+    recording, and the grid starting at the first state (a real machine
+    stamps wall time)."""
     cfg = bag.config(overrides)
     if PARAMETERS_KEY in bag.custom_data:
-        return cfg, cfg.episode.step
-    d = np.diff(np.unique(stamps))
-    step = float(np.median(d)) / 1e9 if d.size else cfg.episode.step
-    horizon = (int(round((stamps.max() - stamps.min()) / 1e9 / step)) + 1) * step
+        return cfg, _Grid(0, cfg.episode.step, 1e-3)
+    origin, step = _fit_grid(stamps, cfg.episode.step)
+    horizon = (int(round((int(stamps.max()) - origin) / 1e9 / step)) + 1) * step
     try:
         cfg = build_config({"simulation.step": step, "simulation.horizon": horizon},
                            source=f"{bag.path} (Δt and horizon from the recording)", base=cfg)
     except HasControlError:                     # too short for the metric window: keep Δt only
         cfg = build_config({"simulation.step": step}, source=f"{bag.path} (Δt from the recording)", base=cfg)
-    return cfg, step
+    return cfg, _Grid(origin, step, 0.25)
+
+
+def _fit_grid(stamps: np.ndarray, default_step: float) -> tuple[int, float]:
+    """(origin [ns], Δt [s]) of jittered stamps: each step between stamps is a
+    whole number of periods of the median step (a gap: several), and the grid
+    is the least-squares line through (sample, stamp), so it does not drift."""
+    u = np.unique(np.asarray(stamps, dtype=np.int64))
+    if len(u) < 2:
+        return int(u[0]), default_step
+    rel = (u - u[0]).astype(np.float64)
+    d = np.diff(rel)
+    k = np.maximum(1.0, np.rint(d / np.median(d)))
+    idx = np.concatenate([[0.0], np.cumsum(k)])
+    slope, intercept = np.polyfit(idx, rel, 1)
+    return int(u[0] + round(intercept)), float(slope) / 1e9
 
 
 def _fill_reference(x1d: np.ndarray, cfg: Config, step: float) -> np.ndarray:
@@ -182,20 +222,6 @@ def _fill_reference(x1d: np.ndarray, cfg: Config, step: float) -> np.ndarray:
     out = x1d.copy()
     out[gaps] = [reference(rp, i * step)[0] for i in gaps]
     return out
-
-
-def _samples(stamps_ns: np.ndarray, step: float, what: str) -> np.ndarray:
-    """Sample index of each stamp; refused if off the grid or negative."""
-    x = stamps_ns / (step * 1e9)
-    idx = np.rint(x).astype(np.int64)
-    off = np.abs(x - idx) > 1e-3
-    if off.any() or (idx < 0).any():
-        k = int(np.argmax(off | (idx < 0)))
-        raise BagError(f"{what}: message {k} is stamped {stamps_ns[k] / 1e9:.9f} s, "
-                       f"not on the sample grid of {step * 1e3:g} ms")
-    if len(idx) and idx.max() > 100 * len(idx) + 1_000_000:
-        raise BagError(f"{what}: stamps up to sample {idx.max()} for {len(idx)} messages: not one run")
-    return idx
 
 
 def _on_grid(n: int, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -215,16 +241,16 @@ def _optional(bag: Bag, relative: str, msgtype: str) -> str | None:
     return hits[0] if hits and bag.messages[hits[0]] else None
 
 
-def _arrays(bag: Bag, topic: str, columns: tuple[str, ...], step: float) -> tuple[np.ndarray, np.ndarray]:
+def _arrays(bag: Bag, topic: str, columns: tuple[str, ...], grid: _Grid) -> tuple[np.ndarray, np.ndarray]:
     """(sample of each message, its data) of a Float64MultiArray topic whose rows lead with t [s]."""
     data = cdr.float64_arrays([d for _, d in bag.messages[topic]], f"{bag.path}: {topic}")
     if data.shape[1] != len(columns):
         raise BagError(f"{bag.path}: {topic}: {data.shape[1]} columns, expected {len(columns)} "
                        f"({', '.join(columns)})")
-    return _samples(np.rint(data[:, 0] * 1e9), step, f"{bag.path}: {topic}"), data
+    return grid.samples(np.rint(data[:, 0] * 1e9), f"{bag.path}: {topic}"), data
 
 
-def _gains(bag: Bag, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
+def _gains(bag: Bag, cfg: Config, grid: _Grid) -> tuple[np.ndarray, np.ndarray]:
     """When each gain set took effect [s] and the sets (m, 3) [1/s]: the gains
     topic, else the stored parameters' gains from t = 0, else none."""
     g = _optional(bag, GAINS, FLOAT64_ARRAY)
@@ -233,7 +259,7 @@ def _gains(bag: Bag, cfg: Config) -> tuple[np.ndarray, np.ndarray]:
         if data.shape[1] != len(GAINS_COLUMNS):
             raise BagError(f"{bag.path}: {g}: {data.shape[1]} columns, expected {len(GAINS_COLUMNS)}")
         order = np.argsort(data[:, 0], kind="stable")
-        return data[order, 0], data[order, 1:4]
+        return np.maximum(data[order, 0] - grid.origin_ns / 1e9, 0.0), data[order, 1:4]
     if PARAMETERS_KEY in bag.custom_data:
         return np.zeros(1), np.array([cfg.gains.as_tuple()])
     return np.zeros(0), np.zeros((0, 3))

@@ -199,6 +199,9 @@ def _position(ax, views) -> None:
 def _error(ax, views) -> None:
     """|e1| [µm], log scale; the metric window; e_max, e_μ, e_σ per run."""
     w = views[0].window
+    t0, t1 = min(float(v.t[0]) for v in views), max(float(v.t[-1]) for v in views)
+    if w is not None and (w[1] < t0 or w[0] > t1):
+        w = None                               # the plotted time holds none of it
     if w is not None:
         ax.axvspan(w[0], w[1], **WINDOW_SHADE, label=f"metric window {w[0]:.3g} .. {w[1]:.3g} s")
     visible, inside = [], []
