@@ -13,6 +13,7 @@ import re
 import sys
 from pathlib import Path
 
+from has_control.cli import identify
 from has_control.common.errors import HasControlError
 
 EXIT_USAGE = 2
@@ -514,6 +515,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp2.add_argument("--tolerance", type=_at_least(0.0), default=0.0, metavar="DU",
                      help="with --controller: |du| [m] counted as a match (default 0: bit for bit)")
     rp2.set_defaults(func=cmd_replay)
+
+    identify.add_arguments(sub.add_parser("identify", help="estimate plant parameters from recorded runs"))
 
     for name in NODES:
         sub.add_parser(name, help=f"run the {name} node; what follows goes to ROS (--ros-args -p k:=v ...)")

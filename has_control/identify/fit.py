@@ -1,12 +1,18 @@
 """Identification: bounded nonlinear least squares on short-horizon prediction errors.
 
-The residuals are, for every segment of every experiment
-(:mod:`.segments`), the measured state at the segment's end minus the
-core's prediction from the measured state at its start (:mod:`.kernel`),
-per channel (y, ẏ, P1, P2) whitened by their 4 × 4 residual covariance. Segments
-are disjoint, so with the right parameters the residuals are independent:
-the Gauss-Newton covariance s²·(JᵀJ)⁻¹ at the optimum gives standard errors,
-95 % intervals and correlations. SciPy's ``least_squares`` (trust-region
+Multiple shooting: the recording is cut into short disjoint segments
+(:mod:`.segments`); each is predicted by the core's plant step from its own
+initial state (:mod:`.kernel`), and the residuals are the measured states
+(y, ẏ, P1, P2) at every sample of every segment minus the predictions, per
+channel divided by its noise level (the residual RMS). A segment's initial
+state is fitted too (one Gauss-Newton step from the measured one, a
+variable projection): starting from the noisy measurement instead would let
+a parameter explain that noise away (damping "damps" the noise of the
+initial velocity when the cylinder barely moves: errors in variables). With
+the right parameters the residuals are then the sensors' white noise, and
+the Gauss-Newton covariance s²·(JᵀJ)⁻¹ of the projected problem, with s²
+over the residuals' degrees of freedom less 4 per segment, gives standard
+errors, 95 % intervals and correlations. SciPy's ``least_squares`` (trust-region
 reflective, bounds) solves it from the equation-error start
 (:mod:`.equation_error`).
 
@@ -44,6 +50,8 @@ Z95 = 1.959963984540054
 JAC_STEP = 1e-5
 #: Segments needed per estimated parameter.
 MIN_SEGMENTS_PER_PARAMETER = 20
+#: Rounds of re-weighting before and after the first solve.
+WEIGHT_ROUNDS = 3
 #: A residual of a prediction that blew up (wild parameters): large, finite.
 BLOWN_UP = 1e6
 
@@ -115,7 +123,8 @@ class IdentificationResult:
 
 
 class _Problem:
-    """Weighted prediction residuals of ``keys`` (in units of their scales) over experiments."""
+    """Output-error residuals of ``keys`` (in units of their scales) over
+    experiments, each segment from its own best initial state (see the module)."""
 
     def __init__(self, exps: list[Experiment], keys: tuple[str, ...], scales: np.ndarray,
                  fixed: dict[str, float], length: int):
@@ -123,62 +132,78 @@ class _Problem:
         self.starts = [segment_starts(e, length) for e in exps]
         self.bases = [plant_array(e.cfg.plant.as_array(e.cfg.actuator), list(fixed), list(fixed.values()))
                       for e in exps]
-        self.ends = [e.x[s + length] for e, s in zip(exps, self.starts)]
-        self.whiten = np.eye(4)
+        rows = np.arange(length + 1)
+        self.meas = [e.x[s[:, None] + rows] for e, s in zip(exps, self.starts)]     # (segments, L + 1, 4)
+        self.weights = np.ones(4)
         self.evaluations = 0
 
     @property
     def segments(self) -> int:
         return int(sum(len(s) for s in self.starts))
 
+    @property
+    def nuisance(self) -> int:
+        """Initial states fitted with the parameters: 4 per segment."""
+        return 4 * self.segments
+
     def raw(self, z: np.ndarray) -> list[np.ndarray]:
-        """(segments, 4) prediction errors [SI] of each experiment at z."""
+        """(segments, L + 1, 4) output errors [SI] of each experiment at z, each
+        segment from the initial state that fits it best (one Gauss-Newton step
+        from the measured one: the prediction is nearly linear in it)."""
         self.evaluations += 1
         values = z * self.scales
         out = []
-        for exp, base, s, end in zip(self.exps, self.bases, self.starts, self.ends):
-            pred = self._predict(exp, base, s, values)
-            out.append(pred - end)
+        for exp, base, s, meas in zip(self.exps, self.bases, self.starts, self.meas):
+            x0 = np.ascontiguousarray(meas[:, 0, :])
+            pred = self._predict(exp, base, s, values, x0)
+            w = self.weights
+            sens = np.empty(pred.shape + (4,))
+            for j in range(4):
+                h = _STATE_STEP[j]
+                xj = x0.copy()
+                xj[:, j] += h
+                sens[..., j] = (self._predict(exp, base, s, values, xj) - pred) / h
+            jw = (sens * w[None, None, :, None]).reshape(len(s), -1, 4)
+            rw = ((pred - meas) * w).reshape(len(s), -1)
+            jtj = np.einsum("nki,nkj->nij", jw, jw) + 1e-12 * np.eye(4)
+            jtr = np.einsum("nki,nk->ni", jw, rw)
+            with np.errstate(all="ignore"):
+                step = -np.linalg.solve(jtj, jtr[..., None])[..., 0]
+            step = np.where(np.isfinite(step), step, 0.0)
+            out.append(self._predict(exp, base, s, values, x0 + step) - meas)
         return out
 
-    def _predict(self, exp, base, s, values):
+    def _predict(self, exp, base, s, values, x0):
         dt = exp.step
         tau = dict(zip(self.keys, values)).get("valve_time_constant")
         if tau is not None and 0.0 < tau < dt:
             # A lag shorter than one step (not a plant the config accepts): a smooth
             # blend of the ideal valve and the one-step lag, so the solver sees a slope.
             w = tau / dt
-            return (w * self._run(exp, plant_array(base, self.keys, _with(self.keys, values, dt)), s)
-                    + (1.0 - w) * self._run(exp, plant_array(base, self.keys, _with(self.keys, values, 0.0)), s))
-        return self._run(exp, plant_array(base, self.keys, values), s)
+            return (w * self._run(exp, plant_array(base, self.keys, _with(self.keys, values, dt)), s, x0)
+                    + (1.0 - w) * self._run(exp, plant_array(base, self.keys, _with(self.keys, values, 0.0)), s,
+                                            x0))
+        return self._run(exp, plant_array(base, self.keys, values), s, x0)
 
-    def _run(self, exp, pp, s):
-        out = np.empty((len(s), 4))
-        predict_segments(pp, exp.step, exp.x, exp.u, s, self.length, out)
+    def _run(self, exp, pp, s, x0):
+        out = np.empty((len(s), self.length + 1, 4))
+        predict_segments(pp, exp.step, np.ascontiguousarray(x0), exp.u, s, self.length, out)
         return out
 
     def __call__(self, z: np.ndarray) -> np.ndarray:
-        r = (np.concatenate(self.raw(z)) @ self.whiten.T).ravel()
+        r = (np.concatenate(self.raw(z)) * self.weights).ravel()
         bad = ~np.isfinite(r)
         if bad.any():
             r[bad] = BLOWN_UP
         return r
 
     def set_weights(self, z: np.ndarray) -> dict[str, float]:
-        """Whiten with the 4 × 4 covariance of the residuals at z (a segment's
-        channels share the noise of its starting state); returns their RMS [SI]."""
-        r = np.concatenate(self.raw(z))
+        """Weights 1/RMS per channel from the residuals at z (the sensors' noise,
+        independent per channel and sample); returns the RMS [SI]."""
+        r = np.concatenate(self.raw(z)).reshape(-1, 4)
         sig = np.concatenate([e.x for e in self.exps]).std(axis=0)
-        floor = 1e-12 * np.maximum(sig, 1e-300)
-        rms = np.maximum(np.sqrt(np.mean(r ** 2, axis=0)), floor)
-        corr = np.corrcoef((r / rms).T) if len(r) > 4 else np.eye(4)
-        corr = np.where(np.isfinite(corr), corr, 0.0)
-        np.fill_diagonal(corr, 1.0)
-        cov = corr * np.outer(rms, rms) + np.diag(floor ** 2)
-        try:
-            self.whiten = np.linalg.inv(np.linalg.cholesky(cov))
-        except np.linalg.LinAlgError:
-            self.whiten = np.diag(1.0 / rms)
+        rms = np.maximum(np.sqrt(np.mean(r ** 2, axis=0)), 1e-12 * np.maximum(sig, 1e-300))
+        self.weights = 1.0 / rms
         return dict(zip(CHANNELS, map(float, rms)))
 
     def jacobian(self, z: np.ndarray) -> np.ndarray:
@@ -190,6 +215,10 @@ class _Problem:
             zm[k] -= h
             cols.append((self(zp) - self(zm)) / (2 * h))
         return np.column_stack(cols)
+
+
+#: Steps of the initial state's sensitivities: y [m], ẏ [m/s], P1, P2 [Pa].
+_STATE_STEP = np.array([1e-6, 1e-4, 1e3, 1e3])
 
 
 def _with(keys, values, tau):
@@ -311,13 +340,15 @@ def _fit(exps, keys, start, bnds, fixed, max_evaluations, length) -> dict:
     lo = np.array([bnds[k][0] for k in keys]) / scales
     hi = np.array([bnds[k][1] for k in keys]) / scales
     z0 = np.clip(z0, lo, hi)
-    prob.set_weights(z0)
+    for _ in range(WEIGHT_ROUNDS):           # the initial states' fit depends on the weights, and back
+        prob.set_weights(z0)
     res = least_squares(prob, z0, bounds=(lo, hi), method="trf", x_scale=1.0, diff_step=1e-6,
                         max_nfev=max_evaluations, xtol=1e-10, ftol=1e-10, gtol=1e-10)
     if res.status == 0 or not np.isfinite(res.cost):
         raise IdentificationError(f"the fit did not converge within {max_evaluations} evaluations "
                                   f"({res.message}); no parameters written")
-    rms = prob.set_weights(res.x)           # final weights: the channels' own residual RMS
+    for _ in range(WEIGHT_ROUNDS):           # final weights: the channels' own residual RMS
+        rms = prob.set_weights(res.x)
     res = least_squares(prob, res.x, bounds=(lo, hi), method="trf", x_scale=1.0, diff_step=1e-6,
                         max_nfev=max_evaluations, xtol=1e-10, ftol=1e-10, gtol=1e-10)
     if res.status == 0 or not np.isfinite(res.cost):
@@ -326,7 +357,7 @@ def _fit(exps, keys, start, bnds, fixed, max_evaluations, length) -> dict:
     rms = prob.set_weights(res.x)
     r = prob(res.x)
     jac = prob.jacobian(res.x)
-    dof = max(len(r) - len(keys), 1)
+    dof = max(len(r) - len(keys) - prob.nuisance, 1)
     s2 = float(r @ r) / dof
     u_, sv, vt = np.linalg.svd(jac, full_matrices=False)
     tiny = sv <= sv[0] * 1e-10
