@@ -23,6 +23,7 @@ from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.runtime import borrowed_context, tee
 from has_control.nodes.plant_node import PlantNode
+from has_control.wire.topics import MEASURED_RUN_TOPICS
 
 
 @dataclass
@@ -88,13 +89,15 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         t0 = time.perf_counter()
         params = _overrides(cfg)
         n = cfg.episode.samples
+        measured = cfg.noise.added_by == "plant"      # the controller reads readings: the truth is the plant's
         recorder = executor = None
         nodes: list = []
         interrupted: list = []
         try:
             if record is not None:
                 from has_control.nodes.recorder import Recorder
-                recorder = Recorder(namespace=namespace, subscribe=False, process=True)
+                recorder = Recorder(namespace=namespace, subscribe=False, process=True,
+                                    topics=MEASURED_RUN_TOPICS if measured else None)
                 recorder.open(record, cfg)
             tap = tee(recorder and recorder.sink, live and live.sink)
             plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
@@ -106,8 +109,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 Parameter("publish_internals", value=internals)])
             nodes.append(controller)
             controller.record_trace(n)
-            if realtime:
-                plant.log = []                 # the command each sample ran with (held ones included)
+            if realtime or measured:
+                plant.log = []                 # the true state and the command each sample ran with
             executor = EventsExecutor(context=context)
             for node in nodes:
                 executor.add_node(node)
@@ -147,7 +150,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 node.destroy_node()
         if interrupted:
             raise KeyboardInterrupt              # after the bag is closed: the caller says "interrupted"
-        if realtime:
+        if realtime or measured:
             trace = _plant_trace(plant.log, controller.trace, cfg)
             diverged = plant.diverged or len(trace) < n
         else:
