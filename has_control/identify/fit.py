@@ -48,8 +48,8 @@ CHANNELS = ("y", "ydot", "P1", "P2")
 Z95 = 1.959963984540054
 #: Relative step of the central differences of the covariance's Jacobian.
 JAC_STEP = 1e-5
-#: Segments needed per estimated parameter.
-MIN_SEGMENTS_PER_PARAMETER = 20
+#: Usable samples needed per estimated parameter (0.2 s at the reference step).
+MIN_SAMPLES_PER_PARAMETER = 660
 #: Rounds of re-weighting before and after the first solve.
 WEIGHT_ROUNDS = 3
 #: A residual of a prediction that blew up (wild parameters): large, finite.
@@ -261,11 +261,12 @@ def identify(experiments: list[Experiment], estimate=DEFAULT_KEYS, bounds: dict 
             raise IdentificationError(f"--bound {k} {lo:g} {hi:g}: excludes the start, the model's "
                                       f"{k} = {priors[k]:g}")
     probe = _Problem(experiments, keys, np.ones(len(keys)), {}, length)
-    need = MIN_SEGMENTS_PER_PARAMETER * len(keys)
-    if probe.segments < need:
+    usable = probe.segments * (length + 1)
+    need = MIN_SAMPLES_PER_PARAMETER * len(keys)
+    if usable < need:
         raise IdentificationError(
-            f"{experiments[0].name}: {probe.segments} usable segments of {length} samples (pressures off their "
-            f"bounds); estimating {len(keys)} parameters needs at least {need}: record a longer run")
+            f"{experiments[0].name}: {usable} usable samples (in segments of {length} steps with the pressures off "
+            f"their bounds); estimating {len(keys)} parameters needs at least {need}: record a longer run")
     ee = equation_error(experiments, probe.starts, length)
     start = {}
     for k in keys:
