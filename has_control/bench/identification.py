@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from has_control.config import CONFIG_DIR, build_config, flatten, load_config, load_yaml, read_parameter_files
+from has_control.config import CONFIG_DIR, build_config, flatten, load_config, load_yaml
 from has_control.core.episode import evaluate, simulate
 from has_control.core.params import Config
 from has_control.identify.data import experiment_from_trace

@@ -24,8 +24,8 @@ from typing import Any, Callable, Iterable, Mapping
 from has_control.common.errors import ConfigError, shown
 from has_control.config.params_file import read_parameter_files
 from has_control.core.params import (
-    NOISE_ADDED_BY, ROAD_CLASSES, X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Noise, Plant,
-    Reference,
+    NOISE_ADDED_BY, ROAD_CLASSES, X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Noise,
+    Plant, Reference,
 )
 
 

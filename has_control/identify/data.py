@@ -20,7 +20,7 @@ from typing import Callable, Iterable
 import numpy as np
 from numba import njit
 
-from has_control.bag.base import BagError, warn
+from has_control.bag.base import warn
 from has_control.bag.read import read_bag
 from has_control.common.errors import HasControlError
 from has_control.core.jit import KERNEL

@@ -14,8 +14,8 @@ def plot_validation(t: np.ndarray, measured: np.ndarray, simulated: np.ndarray, 
     measured against simulated, with the fit [%] of each in its legend.
     ``measured``, ``simulated``: (n, 4) states (y, ẏ, P1, P2) [m, m/s, Pa, Pa]."""
     fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
-    for ax, (k, name, unit, factor) in zip(axes, ((0, "y", "mm", 1e3), (2, "P1", "MPa", 1e-6),
-                                                   (3, "P2", "MPa", 1e-6))):
+    panels = ((0, "y", "mm", 1e3), (2, "P1", "MPa", 1e-6), (3, "P2", "MPa", 1e-6))
+    for ax, (k, name, unit, factor) in zip(axes, panels):
         ax.plot(t, measured[:, k] * factor, color="0.55", lw=0.8, label=f"{name} measured")
         ax.plot(t, simulated[:, k] * factor, color="C1", lw=0.9, ls="--",
                 label=f"{name} simulated (fit {fit.get(name, float('nan')):.2f} %)")
