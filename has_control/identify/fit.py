@@ -50,6 +50,8 @@ Z95 = 1.959963984540054
 JAC_STEP = 1e-5
 #: Usable samples needed per estimated parameter (0.2 s at the reference step).
 MIN_SAMPLES_PER_PARAMETER = 660
+#: Relative change of the parameters within which the initial-state sensitivities are reused.
+KEEP_SENSITIVITY = 1e-4
 #: Rounds of re-weighting before and after the first solve.
 WEIGHT_ROUNDS = 3
 #: A residual of a prediction that blew up (wild parameters): large, finite.
@@ -136,6 +138,7 @@ class _Problem:
         self.meas = [e.x[s[:, None] + rows] for e, s in zip(exps, self.starts)]     # (segments, L + 1, 4)
         self.weights = np.ones(4)
         self.evaluations = 0
+        self._sens_at: dict = {}
 
     @property
     def segments(self) -> int:
@@ -153,25 +156,41 @@ class _Problem:
         self.evaluations += 1
         values = z * self.scales
         out = []
-        for exp, base, s, meas in zip(self.exps, self.bases, self.starts, self.meas):
+        for k, (exp, base, s, meas) in enumerate(zip(self.exps, self.bases, self.starts, self.meas)):
             x0 = np.ascontiguousarray(meas[:, 0, :])
             pred = self._predict(exp, base, s, values, x0)
             w = self.weights
-            sens = np.empty(pred.shape + (4,))
-            for j in range(4):
-                h = _STATE_STEP[j]
-                xj = x0.copy()
-                xj[:, j] += h
-                sens[..., j] = (self._predict(exp, base, s, values, xj) - pred) / h
-            jw = (sens * w[None, None, :, None]).reshape(len(s), -1, 4)
+            jw, inv = self._projector(k, exp, base, s, values, x0, pred, z)
             rw = ((pred - meas) * w).reshape(len(s), -1)
-            jtj = np.einsum("nki,nkj->nij", jw, jw) + 1e-12 * np.eye(4)
-            jtr = np.einsum("nki,nk->ni", jw, rw)
-            with np.errstate(all="ignore"):
-                step = -np.linalg.solve(jtj, jtr[..., None])[..., 0]
+            step = -np.einsum("nij,nj->ni", inv, np.einsum("nki,nk->ni", jw, rw))
             step = np.where(np.isfinite(step), step, 0.0)
             out.append(self._predict(exp, base, s, values, x0 + step) - meas)
         return out
+
+    def _projector(self, k, exp, base, s, values, x0, pred, z):
+        """Each segment's weighted sensitivity of its prediction to its initial
+        state, and the inverse of its normal matrix. Kept while z stays within
+        KEEP_SENSITIVITY of where they were computed (the solver's and the
+        covariance's difference steps, the last small steps): the sensitivities
+        barely change there, and the projection's derivative with them held is
+        Kaufman's approximation of variable projection."""
+        key = self._sens_at.get(k)
+        if key is not None and np.all(np.abs(z - key[0]) <= KEEP_SENSITIVITY * np.maximum(np.abs(key[0]), 1.0)) \
+                and np.array_equal(key[1], self.weights):
+            return key[2], key[3]
+        w = self.weights
+        sens = np.empty(pred.shape + (4,))
+        for j in range(4):
+            h = _STATE_STEP[j]
+            xj = x0.copy()
+            xj[:, j] += h
+            sens[..., j] = (self._predict(exp, base, s, values, xj) - pred) / h
+        jw = (sens * w[None, None, :, None]).reshape(len(s), -1, 4)
+        jtj = np.einsum("nki,nkj->nij", jw, jw) + 1e-12 * np.eye(4)
+        with np.errstate(all="ignore"):
+            inv = np.linalg.inv(jtj)
+        self._sens_at[k] = (z.copy(), self.weights.copy(), jw, inv)
+        return jw, inv
 
     def _predict(self, exp, base, s, values, x0):
         dt = exp.step
