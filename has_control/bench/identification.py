@@ -68,10 +68,11 @@ def study_plant(i: int, truth: dict, tuning=None) -> dict:
     experiment = load_config([CONFIG_DIR / "identify.yaml"])
     cfg = _world(truth, 1000 + i, {}, experiment)
     exp = experiment_from_trace(simulate(cfg), cfg, name=f"plant {i}")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = identify([exp], DEFAULT_KEYS)
-    seconds = time.perf_counter() - t0
-    row = {"plant": i, "truth": truth, "seconds": seconds, "evaluations": res.evaluations, "estimates": {}}
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+    row = {"plant": i, "truth": truth, "seconds": seconds, "cpu_seconds": cpu, "evaluations": res.evaluations,
+           "passes": res.passes, "estimates": {}}
     for k, e in res.estimates.items():
         err = e.value - truth[k]
         tol = TAU_TOL if k == "valve_time_constant" else REL_TOL * abs(truth[k])
@@ -99,7 +100,9 @@ def study_plant(i: int, truth: dict, tuning=None) -> dict:
 
 def summary(rows: list[dict]) -> dict:
     out = {"plants": len(rows), "seconds_max": max(r["seconds"] for r in rows),
-           "seconds_median": float(np.median([r["seconds"] for r in rows])), "parameters": {}}
+           "seconds_median": float(np.median([r["seconds"] for r in rows])),
+           "cpu_seconds_max": max(r["cpu_seconds"] for r in rows),
+           "cpu_seconds_median": float(np.median([r["cpu_seconds"] for r in rows])), "parameters": {}}
     for k in DEFAULT_KEYS:
         es = [r["estimates"][k] for r in rows]
         ident = [e for e in es if e["identified"]]
@@ -136,7 +139,7 @@ def main(argv=None) -> int:
                       for k, e in row["estimates"].items())
         tu = f" J ratio {row['tuning']['ratio']:.4f}" if "tuning" in row else ""
         fit = " ".join(f"{c} {v:.1f}" for c, v in row["validation"].items())
-        print(f"plant {i:2d}: {row['seconds']:.2f} s  {st}  fit {fit}{tu}", flush=True)
+        print(f"plant {i:2d}: {row['seconds']:.2f} s ({row['cpu_seconds']:.2f} s CPU)  {st}  fit {fit}{tu}", flush=True)
     s = summary(rows)
     print(json.dumps(s, indent=1, default=float))
     if args.json:
