@@ -118,7 +118,8 @@ class IdentificationResult:
 
     def as_json(self) -> dict:
         return {"estimates": {k: e.as_json() for k, e in self.estimates.items()},
-                "correlation": {"keys": list(self.free), "matrix": self.correlation.tolist()},
+                "correlation": {"keys": list(self.free), "matrix": [[v if math.isfinite(v) else None for v in row]
+                                                                    for row in self.correlation.tolist()]},
                 "singular_values": self.singular_values.tolist(), "residual_rms": self.residual_rms,
                 "success": self.success, "message": self.message, "evaluations": self.evaluations,
                 "segments": self.segments, "seconds": self.seconds, "passes": self.passes}
