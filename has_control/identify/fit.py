@@ -307,6 +307,11 @@ def identify(experiments: list[Experiment], estimate=DEFAULT_KEYS, bounds: dict 
             reason = _unidentifiable(k, fit["values"][i], fit["se"][i], fit["at_bound"][i], bnds[k])
             if reason:
                 dropped[k] = reason
+        if not fit["converged"] and (not dropped or len(dropped) == len(free)):
+            # a parameter the data cannot see can keep the solver wandering: dropped, the rest may
+            # converge; with nothing to drop, the fit failed
+            raise IdentificationError(f"the fit did not converge within {max_evaluations} evaluations "
+                                      f"({fit['message']}); no parameters written")
         if not dropped or len(dropped) == len(free):
             break
         for i, k in enumerate(fit["keys"]):
@@ -364,17 +369,14 @@ def _fit(exps, keys, start, bnds, fixed, max_evaluations, length) -> dict:
     for _ in range(WEIGHT_ROUNDS):           # the initial states' fit depends on the weights, and back
         prob.set_weights(z0)
     res = least_squares(prob, z0, bounds=(lo, hi), method="trf", x_scale=1.0, diff_step=1e-6,
-                        max_nfev=max_evaluations, xtol=1e-10, ftol=1e-10, gtol=1e-10)
-    if res.status == 0 or not np.isfinite(res.cost):
-        raise IdentificationError(f"the fit did not converge within {max_evaluations} evaluations "
-                                  f"({res.message}); no parameters written")
-    for _ in range(WEIGHT_ROUNDS):           # final weights: the channels' own residual RMS
-        rms = prob.set_weights(res.x)
-    res = least_squares(prob, res.x, bounds=(lo, hi), method="trf", x_scale=1.0, diff_step=1e-6,
-                        max_nfev=max_evaluations, xtol=1e-10, ftol=1e-10, gtol=1e-10)
-    if res.status == 0 or not np.isfinite(res.cost):
-        raise IdentificationError(f"the fit did not converge within {max_evaluations} evaluations "
-                                  f"({res.message}); no parameters written")
+                        max_nfev=max_evaluations, xtol=1e-8, ftol=1e-8, gtol=1e-8)
+    converged = res.status > 0 and bool(np.isfinite(res.cost))
+    if converged:
+        for _ in range(WEIGHT_ROUNDS):           # final weights: the channels' own residual RMS
+            rms = prob.set_weights(res.x)
+        res = least_squares(prob, res.x, bounds=(lo, hi), method="trf", x_scale=1.0, diff_step=1e-6,
+                            max_nfev=max_evaluations, xtol=1e-8, ftol=1e-8, gtol=1e-8)
+        converged = res.status > 0 and bool(np.isfinite(res.cost))
     rms = prob.set_weights(res.x)
     r = prob(res.x)
     jac = prob.jacobian(res.x)
@@ -390,8 +392,9 @@ def _fit(exps, keys, start, bnds, fixed, max_evaluations, length) -> dict:
         corr = cov_z / np.outer(d, d)
     span = hi - lo
     at_bound = (res.active_mask != 0) | (np.minimum(res.x - lo, hi - res.x) < 1e-9 * np.maximum(span, 1.0))
-    return {"keys": keys, "values": res.x * scales, "se": se, "correlation": corr, "singular_values": sv,
-            "at_bound": at_bound, "rms": rms, "message": res.message, "segments": prob.segments,
+    return {"keys": keys, "converged": converged, "message": res.message, "values": res.x * scales, "se": se,
+            "correlation": corr, "singular_values": sv,
+            "at_bound": at_bound, "rms": rms, "segments": prob.segments,
             "evaluations": prob.evaluations}
 
 
