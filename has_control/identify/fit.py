@@ -87,7 +87,7 @@ class Estimate:
         f = lambda v: None if not math.isfinite(v) else v  # noqa: E731
         return {"value": self.value, "std_error": f(self.std_error), "ci95": [f(self.lower), f(self.upper)],
                 "status": self.status, "identified": self.identified, "why": self.why or None,
-                "prior": self.prior, "start": self.start, "unit": self.unit}
+                "prior": self.prior, "start": f(self.start), "unit": self.unit}
 
 
 @dataclass
