@@ -25,6 +25,7 @@ WINGS = {
     "bag": 3,       # rosbag2 MCAP: write, read, score
     "plots": 4,     # figures
     "tuning": 5,    # optimisers, sessions, robustness, the paper experiment, Dask
+    "identify": 5,  # plant parameters from recorded runs: reads bags, simulates with core (beside tuning)
     "nodes": 6,     # the ROS layer
     "bench": 7,     # benchmarks
     "cli": 8,       # the command line and the demo
@@ -33,7 +34,7 @@ ROS = ("rclpy", "sensor_msgs", "std_msgs", "rosgraph_msgs", "diagnostic_msgs", "
 BAGS = ("rosbags", "mcap")
 #: What each wing may not load, directly or through another module.
 BANNED = {"common": ROS + BAGS, "core": ROS + BAGS, "config": ROS + BAGS, "wire": ROS + BAGS,
-          "bag": ROS, "plots": ROS, "tuning": ROS}
+          "bag": ROS, "plots": ROS, "tuning": ROS, "identify": ROS}
 
 
 def _modules():

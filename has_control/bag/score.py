@@ -8,7 +8,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from has_control.wire import cdr
-from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, STATE
+from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, STATE, TRUE_STATE
 from has_control.bag.base import BagError, warn
 from has_control.bag.read import Bag, read_bag
 from has_control.core.cost import score_arrays
@@ -56,13 +56,17 @@ def _by_sample(stamps_ns: np.ndarray, step_ns: int, what: str, path) -> np.ndarr
 
 def recorded_run(bag: Bag, overrides: Iterable[str | Path] = ()) -> RecordedRun:
     """The samples of a lock-step run in ``bag``: states, commands and reference.
+    The states are the plant's true ones: ``true_state`` where the plant
+    published its sensors' readings on ``state`` (``noise.added_by: plant``).
     An incomplete bag (truncated or damaged) is refused: its J would not be the run's."""
     if not bag.complete:
         raise BagError(f"{bag.path}: the bag is incomplete ({bag.damage_summary()}); "
                        "an incomplete run is not scored")
     cfg = bag.config(overrides)
     step_ns = cfg.episode.step_ns
-    st, cm, rf = bag.find(STATE, JOINT_STATE), bag.find(COMMAND, JOINT_STATE), bag.find(REFERENCE, FLOAT64_ARRAY)
+    measured = any(t == "/" + TRUE_STATE or t.endswith("/" + TRUE_STATE) for t in bag.types)
+    st = bag.find(TRUE_STATE if measured else STATE, JOINT_STATE)
+    cm, rf = bag.find(COMMAND, JOINT_STATE), bag.find(REFERENCE, FLOAT64_ARRAY)
     states, commands, refs = bag.messages[st], bag.messages[cm], bag.messages[rf]
     if not states or not commands or not refs:
         empty = [t for t, m in ((st, states), (cm, commands), (rf, refs)) if not m]

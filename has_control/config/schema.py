@@ -24,8 +24,8 @@ from typing import Any, Callable, Iterable, Mapping
 from has_control.common.errors import ConfigError, shown
 from has_control.config.params_file import read_parameter_files
 from has_control.core.params import (
-    ROAD_CLASSES, X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Noise, Plant,
-    Reference,
+    NOISE_ADDED_BY, ROAD_CLASSES, X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Noise,
+    Plant, Reference,
 )
 from has_control.core.road import road_components
 
@@ -131,7 +131,7 @@ _register("plant", "plant", {
 _register("noise", "noise", {
     "position": ("float", _non_negative), "velocity": ("float", _non_negative),
     "pressure_cap": ("float", _non_negative), "pressure_rod": ("float", _non_negative),
-    "seed": ("seed", None),
+    "seed": ("seed", None), "added_by": (NOISE_ADDED_BY, None),
 })
 _register("simulation", "episode", {
     "step": ("float", _positive), "horizon": ("float", _positive),

@@ -33,6 +33,9 @@ SIGMA1, SIGMA2, A1_INIT, A2_INIT, A1_MIN, A2_MIN, A1_MAX, A2_MAX, X3D_MODE = ran
 N_CONTROLLER = 9
 X3D_ANALYTIC, X3D_BACKWARD = 0, 1
 X3D_MODES = {"analytic": X3D_ANALYTIC, "backward_difference": X3D_BACKWARD}
+#: Where the measurement noise is added: by the controller to the true states it
+#: receives (the reference), or by the plant to the states it publishes.
+NOISE_ADDED_BY = {"controller": 0, "plant": 1}
 
 # --- reference array layout -------------------------------------------------
 REF_KIND, REF_AMPLITUDE, REF_OMEGA, REF_OFFSET, REF_T0, REF_RISE, REF_F0, \
@@ -139,13 +142,21 @@ class Noise:
     standard deviations position [m] (y), velocity [m/s] (ẏ), pressure_cap and
     pressure_rod [Pa] (P1, P2), a pure function of (seed, sample, channel)
     (:mod:`has_control.core.noise`), so every path draws the same values. The
-    cost and metrics use the true y. All 0 (the reference): exact states."""
+    cost and metrics use the true y. All 0 (the reference): exact states.
+
+    added_by: 'controller' (the reference: the plant publishes its true state,
+    the controller adds the noise to what it reads) or 'plant' (the plant
+    publishes its sensors' readings, true state plus this noise, as a real
+    machine does, and its true state beside them for tests and scoring; the
+    controller adds nothing). The law reads the same values either way, so
+    the episode does not depend on it."""
 
     position: float = 0.0
     velocity: float = 0.0
     pressure_cap: float = 0.0
     pressure_rod: float = 0.0
     seed: int = 0
+    added_by: str = "controller"
 
     def as_array(self) -> np.ndarray:
         return np.array([self.position, self.velocity, self.pressure_cap, self.pressure_rod], dtype=np.float64)

@@ -242,7 +242,9 @@ class ControllerNode(LifecycleNode):
         self.cfg = cfg
         arr = arr or EpisodeArrays.from_config(cfg)
         self.ap, self.cp, self.rp = arr.actuator, arr.adaptation, arr.reference
-        self.sp, self.seed = arr.sensor, arr.seed
+        # noise.added_by plant: the states arrive measured already; the law adds nothing
+        self.sp = arr.sensor if cfg.noise.added_by == "controller" else np.zeros_like(arr.sensor)
+        self.seed = arr.seed
         self.k = cfg.gains.as_tuple()
         self._gains = np.array(self.k)
         self.dt = cfg.episode.step

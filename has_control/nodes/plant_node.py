@@ -33,12 +33,15 @@ value is refused and counted (``malformed_commands``, logged at most every
 once a second (rate, fail-safe samples, refused commands; in realtime also
 real-time factor, misses and lateness percentiles).
 
-Topics: ``state`` (sensor_msgs/JointState, out), ``command``
+Topics: ``state`` (sensor_msgs/JointState, out; with ``noise.added_by: plant``
+the sensors' readings, true state plus the seeded noise ``noise.*`` of the
+sample, and ``true_state`` beside it), ``command``
 (sensor_msgs/JointState, in), ``clock`` (rosgraph_msgs/Clock, out; resolves to
 ``/clock`` in the root namespace). Services (std_srvs/Trigger): ``~/reset``
 back to the initial state at sample 0 and idle; ``~/start`` run an episode of
 ``samples`` samples (0: until stopped) from the current state.
-Parameters: ``actuator.*``, ``simulation.*``, ``plant.*`` (this plant where it
+Parameters: ``actuator.*``, ``simulation.*``, ``noise.*`` (read only with
+``noise.added_by: plant``), ``plant.*`` (this plant where it
 differs from the model ``actuator.*``: mass, bulk_modulus, damping, leakage,
 supply_pressure, valve_gain, each defaulting to its ``actuator.*``; the valve's
 travel limit ``valve_limit`` [m] and lag ``valve_time_constant`` [s]), ``mode``, ``samples``,
@@ -70,7 +73,8 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from has_control.wire import steps
-from has_control.wire.topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT
+from has_control.wire.topics import (CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, STATE_LAYOUT,
+                                     TRUE_STATE)
 from has_control.wire.codec import NOT_FINITE
 from has_control.common.errors import ConfigError
 from has_control.nodes.foxglove import node_tap
@@ -79,7 +83,7 @@ from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, 
 from has_control.nodes.pacing import LoopStats, run_paced
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 
-PREFIXES = ("actuator.", "simulation.", "plant.")
+PREFIXES = ("actuator.", "simulation.", "plant.", "noise.")
 MODES = ("lockstep", "realtime")
 #: The plant's own parameters: (name, default, meaning and unit).
 OWN_PARAMETERS = (
@@ -151,6 +155,10 @@ class PlantNode(LifecycleNode):
         self.priority = int(self.get_parameter("realtime_priority").value)
         self.mode = self.get_parameter("mode").value
         self._state_msg = STATE_LAYOUT.buffer()
+        # noise.added_by plant: ``state`` carries the sensors' readings, ``true_state`` the state
+        self.measured = cfg.noise.added_by == "plant"
+        self.sp, self.seed = cfg.noise.as_array(), int(cfg.noise.seed)
+        self._true_msg = STATE_LAYOUT.buffer()
         self._clock_msg = CLOCK_LAYOUT.buffer()
         self._scratch = steps.scratch()
         steps.warm_up()                                # compile or load the step and decoder first
@@ -159,6 +167,9 @@ class PlantNode(LifecycleNode):
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos(CLOCK_TOPIC))
         self._publish_state = raw_publish(self.state_pub, tap)
         self._publish_clock = raw_publish(self.clock_pub, tap)
+        if self.measured:
+            self.true_state_pub = self.create_publisher(JointState, TRUE_STATE, CONTROL_QOS)
+            self._publish_true = raw_publish(self.true_state_pub, tap)
         self._command_sub = self.create_subscription(JointState, COMMAND, self._on_command, CONTROL_QOS, raw=True)
         self._command_topic = self._command_sub.topic_name
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -261,6 +272,7 @@ class PlantNode(LifecycleNode):
         self.command_sample, self.command_u = -1, 0.0
         self._answered_at, self._answers = [-1] * ANSWERS_KEPT, [0.0] * ANSWERS_KEPT
         steps.encode_state(self.x, self.ap, 0, self.step_ns, self._state_msg, self._clock_msg, self._scratch)
+        self._measure()
         self._last_publish = time.monotonic()
         self._published = False
 
@@ -292,9 +304,20 @@ class PlantNode(LifecycleNode):
         """Both directions of the loop have matched a peer (a controller is listening and talking)."""
         return bool(self.state_pub.get_subscription_count() and self._command_sub.get_publisher_count())
 
+    def _measure(self) -> None:
+        """With measured states: the true state just encoded moves to ``true_state``,
+        the sensors' readings of it (seeded noise of this sample) take its place."""
+        if self.measured:
+            self._true_msg[:] = self._state_msg
+            steps.encode_measured(self.x, self.ap, self.sample, self.step_ns, self.sp, self.seed,
+                                  self._state_msg, self._clock_msg, self._scratch)
+
     def publish_state(self) -> None:
-        """Write: the clock and state of the current sample."""
+        """Write: the clock and state of the current sample (and, with measured
+        states, the true state first)."""
         self._publish_clock(bytes(self._clock_msg))
+        if self.measured:
+            self._publish_true(bytes(self._true_msg))
         self._publish_state(bytes(self._state_msg))
         self._last_publish = time.monotonic()
         self._published = True
@@ -310,6 +333,7 @@ class PlantNode(LifecycleNode):
         self.sample += 1
         bad = steps.plant_sample(self.x, u, self.ap, self.step_s, self.y_limit, self.sample, self.step_ns,
                                  self._state_msg, self._clock_msg, self._scratch)
+        self._measure()
         if self.samples and self.sample >= self.samples:
             self._finish()
             return False

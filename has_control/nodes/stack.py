@@ -27,7 +27,7 @@ from has_control.nodes.runtime import borrowed_context, tee
 from has_control.nodes.plant_node import PlantNode
 from has_control.wire import cdr
 from has_control.wire.codec import column_label
-from has_control.wire.topics import FLOAT64_ARRAY, MISSED, MISSED_COLUMNS
+from has_control.wire.topics import FLOAT64_ARRAY, MEASURED_RUN_TOPICS, MISSED, MISSED_COLUMNS
 
 
 @dataclass
@@ -101,13 +101,15 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                      "layout config/foxglove/has_control.json)")
         params = _overrides(cfg)
         n = cfg.episode.samples
+        measured = cfg.noise.added_by == "plant"      # the controller reads readings: the truth is the plant's
         recorder = executor = None
         nodes: list = []
         interrupted: list = []
         try:
             if record is not None:
                 from has_control.nodes.recorder import Recorder
-                recorder = Recorder(namespace=namespace, subscribe=False, process=True)
+                recorder = Recorder(namespace=namespace, subscribe=False, process=True,
+                                    topics=MEASURED_RUN_TOPICS if measured else None)
                 recorder.open(record, cfg)
             tap = tee(recorder and recorder.sink, live and live.sink)
             managed = Parameter("autostart", value=False)           # the transitions are driven here
@@ -122,8 +124,8 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
             for node in (plant, controller):     # unconfigured -> inactive -> active
                 _bring_up(node)
             controller.record_trace(n)
-            if realtime:
-                plant.log = []                 # the command each sample ran with (held ones included)
+            if realtime or measured:
+                plant.log = []                 # the true state and the command each sample ran with
             executor = EventsExecutor(context=context)
             for node in nodes:
                 executor.add_node(node)
@@ -169,7 +171,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
                 node.destroy_node()
         if interrupted:
             raise KeyboardInterrupt              # after the bag is closed: the caller says "interrupted"
-        if realtime:
+        if realtime or measured:
             trace = _plant_trace(plant.log, controller.trace, cfg)
             diverged = plant.diverged or len(trace) < n
         else:

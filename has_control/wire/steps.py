@@ -78,6 +78,15 @@ def plant_sample(x, u, pp, dt, y_limit, sample, step_ns, state, clock, scr):
 
 
 @njit(**KERNEL)
+def encode_measured(x, ap, sample, step_ns, sp, seed, state, clock, scr):
+    """The sensors' readings of state x = (y, ẏ, P1, P2) of ``sample``: x plus
+    the measurement noise of that sample (sensor array ``sp``, ``seed``; the
+    values the episode kernel adds for the law), into the state message."""
+    n1, n2, n3, n4 = measurement_noise(sp, seed, sample)
+    encode_state((x[0] + n1, x[1] + n2, x[2] + n3, x[3] + n4), ap, sample, step_ns, state, clock, scr)
+
+
+@njit(**KERNEL)
 def command_of(data, step_ns, scr):
     """(sample index or MALFORMED/NOT_FINITE, u [m]) of a command message."""
     if not matches(data, _COMMAND_T, _COMMAND_FIXED):
@@ -157,6 +166,7 @@ def warm_up() -> None:
     x = np.append(arr.x0, 0.0)
     encode_state(x, arr.plant, 0, step_ns, state, clock, scr)
     plant_sample(x, 0.0, arr.plant, cfg.episode.step, cfg.episode.y_limit, 1, step_ns, state, clock, scr)
+    encode_measured(x, arr.plant, 1, step_ns, arr.sensor, arr.seed, state, clock, scr)
     command_of(bytes(state), step_ns, scr)
     controller_sample(bytes(state), np.zeros(CONTROLLER_MEMORY), np.array(cfg.gains.as_tuple()), arr.actuator,
                       arr.adaptation, arr.reference, arr.sensor, arr.seed, cfg.episode.step, step_ns,

@@ -29,6 +29,9 @@ FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
 STRING = "std_msgs/msg/String"
 
 STATE, COMMAND, CLOCK_TOPIC = "state", "command", "clock"
+#: The plant's true state, published beside its sensors' readings on ``state``
+#: when the plant adds the measurement noise (``noise.added_by: plant``).
+TRUE_STATE = "true_state"
 REFERENCE, CONTROLLER_STATE, GAINS = "controller/reference", "controller/controller_state", "controller/gains"
 #: A realtime run's samples that ran without their command (recorded by ``stack --realtime --record``).
 MISSED = "plant/missed"
@@ -48,12 +51,14 @@ MISSED_COLUMNS = ("t", "u", "failsafe")
 #: are reliable. The loop's state and command keep the last one (lock-step
 #: must not lose a sample, and a stale one is never worth delivering); the
 #: gains in force are kept for late joiners.
-QOS = {STATE: (1, False), COMMAND: (1, False), CLOCK_TOPIC: (10, False),
+QOS = {STATE: (1, False), TRUE_STATE: (1, False), COMMAND: (1, False), CLOCK_TOPIC: (10, False),
        REFERENCE: (10, False), CONTROLLER_STATE: (10, False), GAINS: (1, True)}
 
 #: Topics of a recorded run and their types.
 RUN_TOPICS = {STATE: JOINT_STATE, COMMAND: JOINT_STATE, CLOCK_TOPIC: CLOCK,
               REFERENCE: FLOAT64_ARRAY, CONTROLLER_STATE: FLOAT64_ARRAY, GAINS: FLOAT64_ARRAY}
+#: ... and of a run whose plant publishes measured states (``noise.added_by: plant``).
+MEASURED_RUN_TOPICS = {**RUN_TOPICS, TRUE_STATE: JOINT_STATE}
 
 #: Wire layouts of the messages the loop exchanges every sample.
 STATE_LAYOUT = codec.joint_state_layout(STATE_NAMES, 3, 3, 3)
@@ -69,5 +74,5 @@ PROGRESS_LAYOUT = codec.float64_array_layout(PROGRESS_COLUMNS)
 FORWARD_COMMAND_LAYOUT = codec.float64_array_layout(tuple(COMMAND_NAMES))
 
 #: The layout of each run topic (by relative name).
-LAYOUTS = {STATE: STATE_LAYOUT, COMMAND: COMMAND_LAYOUT, CLOCK_TOPIC: CLOCK_LAYOUT,
+LAYOUTS = {STATE: STATE_LAYOUT, TRUE_STATE: STATE_LAYOUT, COMMAND: COMMAND_LAYOUT, CLOCK_TOPIC: CLOCK_LAYOUT,
            CONTROLLER_STATE: CONTROLLER_STATE_LAYOUT, REFERENCE: REFERENCE_LAYOUT, GAINS: GAINS_LAYOUT}

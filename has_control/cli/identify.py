@@ -1,0 +1,103 @@
+"""``has-control identify``: plant parameters from recorded runs, with their
+intervals and identifiability, as a params file; validated on a held-out run."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from has_control.common.errors import HasControlError
+
+
+HELP = "estimate plant parameters from recorded runs"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("bags", nargs="+", metavar="BAG", help="recorded runs (bag directories or .mcap files)")
+    p.add_argument("--estimate", nargs="+", metavar="KEY",
+                   help="plant parameters to estimate (default: mass damping bulk_modulus leakage valve_gain "
+                        "valve_time_constant; also supply_pressure)")
+    p.add_argument("--config", action="append", metavar="FILE",
+                   help="ros__parameters YAML overriding the parameters stored in the bags (repeatable)")
+    p.add_argument("--bound", nargs=3, action="append", metavar=("KEY", "LOWER", "UPPER"),
+                   help="bounds of an estimated parameter [SI] (default: a factor 4 around the model's value)")
+    p.add_argument("--tolerance", type=float, default=0.02, metavar="R",
+                   help="an identified parameter's 95 %% half-width is at most R of its value (default 0.02)")
+    p.add_argument("--max-evaluations", type=int, default=200, metavar="N",
+                   help="residual evaluations per least-squares pass before giving up (default 200)")
+    p.add_argument("--out", metavar="FILE.yaml", help="write the identified plant as a --params-file")
+    p.add_argument("--validate", metavar="BAG", help="simulate the identified plant against this held-out run")
+    p.add_argument("--plot", metavar="FILE.png", help="with --validate: measured against simulated states")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    # lazy: numba kernels and SciPy load in ~1 s; the other subcommands should not wait for them
+    from has_control.identify import identify_bags
+    if args.plot and not args.validate:
+        raise HasControlError("--plot: needs --validate BAG (it shows the held-out run)")
+    if args.plot:
+        from has_control.plots.figures import figure_format  # lazy: matplotlib, only for --plot
+        figure_format(args.plot)
+    if args.out and Path(args.out).is_dir():
+        raise HasControlError(f"--out {args.out}: is a directory; expected a .yaml file")
+    if args.max_evaluations < 1:
+        raise HasControlError(f"--max-evaluations {args.max_evaluations}: must be >= 1")
+    if not (0 < args.tolerance < 1):
+        raise HasControlError(f"--tolerance {args.tolerance}: must be in (0, 1)")
+    bounds = {}
+    for key, lo, hi in args.bound or []:
+        try:
+            bounds[key] = (float(lo), float(hi))
+        except ValueError:
+            raise HasControlError(f"--bound {key} {lo} {hi}: expected two numbers") from None
+    out = identify_bags(args.bags, estimate=args.estimate, configs=args.config or [], bounds=bounds,
+                        tolerance=args.tolerance, max_evaluations=args.max_evaluations, out=args.out,
+                        validate_bag=args.validate, plot=args.plot)
+    result, val = out.result, out.validation
+    if args.json:
+        doc = result.as_json()
+        doc["bags"] = list(args.bags)
+        doc["out"] = str(out.params) if out.params else None
+        doc["validation"] = val.as_json() if val else None
+        print(json.dumps(doc, allow_nan=False, default=_json_default))
+        return 0
+    print(table(result, len(args.bags)))
+    if out.params:
+        print(f"wrote {out.params}")
+    if val:
+        fits = ", ".join(f"{k} {v:.2f} %" for k, v in val.fit.items())
+        print(f"validation on {val.name} (closed loop, identified plant): fit {fits}"
+              + (" (the simulation diverged)" if val.diverged else ""))
+    if out.figure:
+        print(f"wrote {out.figure}")
+    return 0
+
+
+def _json_default(v):
+    return float(v)
+
+
+def _num(v: float) -> str:
+    return "-" if not math.isfinite(v) else f"{v:.6g}"
+
+
+def table(result, experiments: int) -> str:
+    """The estimates, their standard errors, 95 % intervals, priors and status, as text."""
+    lines = [f"identified from {experiments} experiment{'s' * (experiments != 1)}: {result.segments} segments, "
+             f"{result.passes} pass{'es' * (result.passes != 1)}, {result.evaluations} evaluations, "
+             f"{result.seconds:.2f} s",
+             f"{'parameter':<34}{'estimate':>13}{'std error':>12}  {'95 % interval':<27}{'model':>11}  status"]
+    for k, e in result.estimates.items():
+        ci = "-" if not math.isfinite(e.lower) else f"[{e.lower:.6g}, {e.upper:.6g}]"
+        status = e.status + (f": {e.why}" if e.why else "")
+        lines.append(f"{k + ' [' + e.unit + ']':<34}{_num(e.value):>13}{_num(e.std_error):>12}  {ci:<27}"
+                     f"{_num(e.prior):>11}  {status}")
+    keys, c = result.free, result.correlation
+    strong = [f"{keys[i]}/{keys[j]} {c[i, j]:+.2f}" for i in range(len(keys)) for j in range(i + 1, len(keys))
+              if math.isfinite(c[i, j]) and abs(c[i, j]) >= 0.5]
+    lines.append("correlations |r| >= 0.5: " + (", ".join(strong) if strong else "none"))
+    lines.append("residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in result.residual_rms.items()))
+    return "\n".join(lines)

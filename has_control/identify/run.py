@@ -1,0 +1,41 @@
+"""Bags in, estimates and files out: what ``has-control identify`` does."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from has_control.identify.data import experiment_from_bag
+from has_control.identify.fit import IdentificationResult, identify
+from has_control.identify.params_out import params_yaml
+from has_control.identify.parameters import DEFAULT_KEYS
+from has_control.identify.validate import Validation, validate
+from has_control.common.files import write_atomic
+from has_control.plots.identification import plot_validation
+
+
+@dataclass
+class IdentifyOutput:
+    result: IdentificationResult
+    params: Path | None
+    validation: Validation | None
+    figure: Path | None
+
+
+def identify_bags(bags, estimate=None, configs=(), bounds=None, tolerance: float = 0.02,
+                  max_evaluations: int = 200, out=None, validate_bag=None, plot=None) -> IdentifyOutput:
+    """Identify ``estimate`` (default :data:`~.parameters.DEFAULT_KEYS`) from the
+    runs in ``bags`` (their parameters overridden by ``configs``); write the
+    params file ``out``; validate on ``validate_bag`` (figure ``plot``). Nothing
+    is written unless the fit converged."""
+    exps = [experiment_from_bag(b, configs) for b in bags]
+    held = experiment_from_bag(validate_bag, configs) if validate_bag else None
+    result = identify(exps, estimate or DEFAULT_KEYS, bounds=bounds, tolerance=tolerance,
+                      max_evaluations=max_evaluations)
+    text = params_yaml(exps[0].cfg, result, note=f"has-control identify {' '.join(map(str, bags))}")
+    val = validate(held, result) if held is not None else None
+    params = write_atomic(out, text) if out else None
+    figure = None
+    if val is not None and plot:
+        figure = plot_validation(val.t, val.measured, val.simulated, val.fit, plot,
+                                 f"Identified plant against {Path(str(val.name)).name} (held out)")
+    return IdentifyOutput(result, params, val, figure)
