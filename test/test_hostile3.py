@@ -302,7 +302,7 @@ def test_every_front_end_checks_scenarios_and_aggregate_alike(tmp_path, capsys, 
     p.write_text(NOM)
     one_line(capsys, ["tune", "--scenarios", p, "--aggregate", ""], "--aggregate", "expected mean, max or cvar")
     one_line(capsys, ["robustness", "--gains", 400, 400, 400, "--scenarios", p, "--aggregate", ""], "aggregate ''")
-    one_line(capsys, ["tune", "--aggregate", "max"], "--aggregate 'max': needs --scenarios")
+    one_line(capsys, ["tune", "--aggregate", "max"], "--aggregate max: needs --scenarios")
     for params, why in (([Parameter("aggregate", value="garbage")], "parameter aggregate"),
                         ([Parameter("aggregate", value="max")], "needs parameter scenarios"),
                         ([Parameter("scenarios", value=str(p)), Parameter("aggregate", value="")],
