@@ -174,9 +174,9 @@ def _signalled(argv, sig, delay, group=False, ready=lambda: True):
 def test_ctrl_c_at_the_terminal_while_dask_gathers_is_one_line(tmp_path):
     pytest.importorskip("distributed")
     many = tmp_path / "many.yaml"
-    many.write_text("random: {count: 2000, seed: 1, ranges: {plant.mass: [1200.0, 1800.0]}}\n")
+    many.write_text("random: {count: 6000, seed: 1, ranges: {plant.mass: [1200.0, 1800.0]}}\n")
     rc, err = _signalled(["robustness", "--gains", 400, 400, 400, "--scenarios", many, "--dask", "local:1"],
-                         signal.SIGINT, 14.0, group=True)                   # the whole group, as a terminal does
+                         signal.SIGINT, 20.0, group=True)                   # the whole group, as a terminal does
     assert rc == 130 and err.strip().splitlines() == ["has-control: interrupted"], err[:3000]
 
 

@@ -44,11 +44,11 @@ def run(args) -> int:
     scenarios = load_scenarios(args.scenarios, cfg)
     with batch(args) as evaluator:
         table = robustness_table(gains, labels, cfg, scenarios, parse_aggregate(args.aggregate), evaluator)
+    print(json.dumps(table.as_json()) if args.json else table.text(), flush=True)    # kept if a write fails
     if args.plot:
         # lazy: matplotlib takes about 1 s to load; only --plot needs it
         from has_control.plots.figures import plot_robustness
         plot_robustness(table, args.plot, args.baseline)
     if args.markdown:
         write_atomic(args.markdown, table.markdown())
-    print(json.dumps(table.as_json()) if args.json else table.text())
     return 0

@@ -38,6 +38,7 @@ import numpy as np
 from has_control.core.episode import LANES, evaluate_configs
 from has_control.common.errors import HasControlError, shown
 from has_control.core.params import Config
+from has_control.core.reference import check_road_memory
 
 #: Most worker processes ``local:N`` starts (a typo such as local:1000000 would fork that many).
 MAX_LOCAL_WORKERS = 1024
@@ -314,6 +315,7 @@ class DaskBatch:
         if k.ndim != 2 or k.shape[1] != 3:
             raise ValueError(f"gains: expected shape (P, 3), got {np.shape(gains)}")
         cfgs = list(cfgs)
+        check_road_memory([(c.reference, c.episode) for c in cfgs])     # each worker would build them all
         out = np.empty((k.shape[0], len(cfgs), 4))
         if out.size == 0:
             return out

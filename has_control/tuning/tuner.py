@@ -168,7 +168,8 @@ def robust_tuning(tuning: Tuning, cfg: Config, scenarios: str | None, aggregate:
     agg = aggregate_arg(aggregate, names[1]) if aggregate is not None else None
     if not scenarios:
         if aggregate is not None:
-            raise ConfigError(f"{names[1]} {str(aggregate)[:60]}: needs {names[0]} FILE")
+            raise ConfigError(f"{names[1]} {aggregate if len(aggregate) <= 60 else shown(aggregate)}: "
+                              f"needs {names[0]} FILE")
         return tuning
     return tuning.replace(scenarios=load_scenarios(scenarios, cfg), aggregate=agg or Aggregate("mean"))
 
