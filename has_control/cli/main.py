@@ -108,22 +108,36 @@ class Progress(StatusLine):
         now = time.perf_counter()
         self.t0 = self.t0 or now - 1e-9
         rate = swarm.evaluations / max(now - self.t0, 1e-9)
-        total = swarm.settings.iterations
-        filled = int(30 * swarm.iteration / total)
-        self.show(f"{swarm.settings.variant} seed {swarm.seed} [{'#' * filled}{'.' * (30 - filled)}] "
-                  f"{swarm.iteration}/{total}  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s")
+        filled = int(30 * swarm.progress())
+        self.show(f"{swarm.name} seed {swarm.seed} [{'#' * filled}{'.' * (30 - filled)}] "
+                  f"{swarm.evaluations} evaluations  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s")
 
 
 def _tuning_args(args):
     from has_control.tuning.tuner import load_tuning
     t = load_tuning(args.config or [])
     changes = {k: v for k, v in (("variant", args.variant), ("seed", args.seed),
-                                 ("particles", args.particles), ("iterations", args.iterations))
+                                 ("particles", args.particles), ("iterations", args.iterations),
+                                 ("evaluations", getattr(args, "evaluations", None)))
                if v is not None}
     try:
-        return t.replace(**changes)
+        t = t.replace(**changes)
     except HasControlError as exc:
         raise HasControlError(f"command line: {exc}") from None
+    _check_method_options(args, t.method)
+    return t
+
+
+def _check_method_options(args, method: str) -> None:
+    """--particles/--iterations belong to the swarms, --evaluations to cma-restarts."""
+    from has_control.tuning.methods import is_swarm
+    swarm = is_swarm(method)
+    for option, value, ok in (("--particles", args.particles, swarm), ("--iterations", args.iterations, swarm),
+                              ("--evaluations", getattr(args, "evaluations", None), not swarm)):
+        if value is not None and not ok:
+            raise HasControlError(f"{option} {value}: not an option of the method {method} "
+                                  f"({'--particles/--iterations are' if swarm else '--evaluations is'})"
+                                  + ("" if swarm else "; --variant pso-cp-tvac for the paper's swarm"))
 
 
 def _robust(args, cfg, tuning):
@@ -181,6 +195,8 @@ def cmd_tune(args) -> int:
         print(f"{res.variant}, seed {res.seed}: k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), "
               f"J = {res.result.fun:.6e}{robust} after {res.result.nit} iterations, "
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
+        for line in res.bounds.lines() if res.bounds is not None else ():
+            print(line)
         if run.directory:
             print(f"wrote {run.directory / 'tune.json'}, gains.yaml (a --params-file for the controller), "
                   f"convergence.png, gains.png and the session bag {run.bag}")
@@ -280,7 +296,10 @@ def _new_bag_path(text: str) -> Path:
 def _stack_tune(args, cfg) -> int:
     from has_control.nodes.stack import run_tuning_stack
     changes = {k: v for k, v in (("seed", args.seed), ("particles", args.particles),
-                                 ("iterations", args.iterations), ("variant", args.variant)) if v is not None}
+                                 ("iterations", args.iterations), ("variant", args.variant),
+                                 ("evaluations", args.evaluations)) if v is not None}
+    from has_control.tuning.tuner import load_tuning
+    _check_method_options(args, args.variant or load_tuning(args.config or []).method)
     out = run_tuning_stack(cfg, changes, config_files=args.config or [], evaluator=args.evaluator,
                            namespaces=args.lanes, record=args.record, validate_best=True)
     if args.json:
@@ -290,6 +309,10 @@ def _stack_tune(args, cfg) -> int:
         print(f"tuner ({out['variant']}, {out['evaluator']} evaluator, seed {out['seed']}): "
               f"best k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), J = {out['J']:.6e} after "
               f"{out['iterations']} iterations, {out['evaluations']} evaluations, {out['seconds']:.1f} s")
+        if "bounds" in out:
+            from has_control.tuning.bounds import BoundDiagnostics
+            for line in BoundDiagnostics.from_json(out["bounds"]).lines():
+                print(line)
         v = out.get("validation")
         if v:
             print(f"validated through the graph: J = {v['J']:.6e}, e_max = {v['e_max']:.4e} m"
@@ -407,7 +430,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from has_control.tuning.swarm import VARIANTS
+    from has_control.tuning.methods import METHODS as VARIANTS
     p = _Parser(prog="has-control", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
@@ -422,12 +445,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--trace", metavar="FILE.csv", help="write the time series")
     s.set_defaults(func=cmd_simulate)
 
-    t = sub.add_parser("tune", help="tune k1, k2, k3 with a particle swarm")
+    t = sub.add_parser("tune", help="tune k1, k2, k3 (cma-restarts, or the paper's particle swarms)")
     t.add_argument("--variant", choices=tuple(VARIANTS),
-                   help="optimiser (default: config/tuner.yaml, pso-cp-tvac)")
+                   help="method (default: config/tuner.yaml, cma-restarts; pso-cp-tvac: the paper's)")
     t.add_argument("--seed", type=int, help="random seed (default 1)")
-    t.add_argument("--particles", type=_positive_int, metavar="N", help="swarm size (default 80)")
-    t.add_argument("--iterations", type=_positive_int, metavar="N", help="iterations (default 100)")
+    t.add_argument("--evaluations", type=_positive_int, metavar="N", help="cma-restarts: budget (default 4000)")
+    t.add_argument("--particles", type=_positive_int, metavar="N", help="swarms: swarm size (default 80)")
+    t.add_argument("--iterations", type=_positive_int, metavar="N", help="swarms: iterations (default 100)")
     t.add_argument("--config", action="append", metavar="FILE",
                    help="ros__parameters YAML (episode and swarm.* keys; repeatable)")
     t.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
@@ -468,7 +492,7 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--force", action="store_true", help="write into DIR even if it is not empty")
     rp.add_argument("--particles", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
     rp.add_argument("--iterations", type=_positive_int, metavar="N", help=argparse.SUPPRESS)
-    rp.set_defaults(func=cmd_reproduce, duration=None, variant=None, seed=None)
+    rp.set_defaults(func=cmd_reproduce, duration=None, variant="pso-cp-tvac", seed=None)
 
     st = sub.add_parser("stack", help="run plant and controller nodes in one process, lock-step or real time")
     st.add_argument("--duration", type=float, metavar="S", help="horizon [s] (default: config, 10 s)")
@@ -485,6 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="add the tuner node: tune the gains, set the best on the controller")
     st.add_argument("--variant", choices=tuple(VARIANTS), help="with --tune")
     st.add_argument("--seed", type=int, help="with --tune")
+    st.add_argument("--evaluations", type=_positive_int, metavar="N", help="with --tune (cma-restarts)")
     st.add_argument("--particles", type=_positive_int, metavar="N", help="with --tune")
     st.add_argument("--iterations", type=_positive_int, metavar="N", help="with --tune")
     st.add_argument("--evaluator", choices=("batch", "graph"), default="batch",

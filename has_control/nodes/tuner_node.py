@@ -1,6 +1,7 @@
-"""The tuner node: tunes the controller's gains with a particle swarm.
+"""The tuner node: tunes the controller's gains (``swarm.variant``: cma-restarts,
+the default, or the paper's particle swarms) and reports the bound diagnostics.
 
-It drives the swarm's ask/tell interface (:func:`has_control.tuning.tuner.tune`,
+It drives the optimiser's ask/tell interface (:func:`has_control.tuning.tuner.tune`,
 the same code as ``has-control tune``). With ``evaluator: graph`` every
 candidate runs through the node graph: the tuner sets the controller's
 gains with ``set_parameters_atomically``, resets plant and controller
@@ -13,7 +14,7 @@ evaluator (fast); either way the best gains are then set on every lane's
 controller, and ``validate_best`` re-runs them through the graph, recorded
 and scored from the bag.
 
-Parameters: ``swarm.*`` (config/tuner.yaml), the model and episode
+Parameters: ``swarm.*`` and ``restarts.*`` (config/tuner.yaml), the model and episode
 (``actuator.*``, ``simulation.*``, ``cost.*``, ``metrics.*``, ...; the same
 files as plant and controller) and the world the batch evaluator simulates
 and the bags record (``plant.*``, ``noise.*``, as plant and controller take
@@ -50,7 +51,6 @@ from std_srvs.srv import Trigger
 
 from has_control.bag import BagError, score_bag
 from has_control.common.errors import ConfigError, HasControlError
-from has_control.tuning.swarm import Swarm
 from has_control.tuning.tuner import Tuning, load_tuning, tuning_from_parameters, tuning_parameters
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 from has_control.nodes.recorder import Recorder
@@ -176,7 +176,8 @@ class TunerNode(Node):
         self._thread: threading.Thread | None = None
 
     def _tuning(self) -> Tuning:
-        flat = {f"swarm.{k}": p.value for k, p in self.get_parameters_by_prefix("swarm").items()}
+        flat = {f"{prefix}.{k}": p.value for prefix in ("swarm", "restarts")
+                for k, p in self.get_parameters_by_prefix(prefix).items()}
         flat = {k: (list(v) if hasattr(v, "tolist") or isinstance(v, (list, tuple)) else v) for k, v in flat.items()}
         return tuning_from_parameters(flat, {k: f"parameter {k} of {self.get_fully_qualified_name()}" for k in flat})
 
@@ -251,14 +252,14 @@ class TunerNode(Node):
             episodes = Path(directory) / "episodes" if directory else scratch
             return self._graph_objective(cfg, episodes, timeout, keep=bool(directory))
 
-        def on_iteration(sw: Swarm) -> None:
+        def on_iteration(sw) -> None:
             k = sw.gbest_x
             self.progress_pub.publish(Float64MultiArray(data=[
                 float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations),
                 time.perf_counter() - t0]))
             if sw.iteration % every == 0 or sw.done:
-                log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
-                         f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")
+                log.info(f"{sw.name} iteration {sw.iteration} ({100 * sw.progress():.0f} %): best J = "
+                         f"{sw.gbest_f:.6e} at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations")
 
         def record_validation(gains, writer, cfg) -> None:     # through the graph, into the session bag
             self.lanes[0].run(gains, cfg, writer.path, timeout, writer=writer, prefix="/validation")
@@ -269,6 +270,9 @@ class TunerNode(Node):
                               record_validation=record_validation if validate else None,
                               announce=log.info, on_warning=log.warning)
             res, out, best = run.result, dict(run.out), run.result.gains
+            if res.bounds is not None:
+                for line in res.bounds.lines():
+                    (log.warning if line.startswith("warning") else log.info)(line)
             for lane in self.lanes:
                 reason = lane.set_gains(best)
                 if reason:
