@@ -14,7 +14,7 @@ setup(
         ("share/" + package_name + "/config", glob("config/*.yaml")),
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
-    install_requires=["setuptools", "numpy", "numba", "matplotlib", "pyyaml", "rosbags", "zstandard"],
+    install_requires=["setuptools", "numpy", "numba", "matplotlib", "pyyaml", "rosbags", "zstandard", "cma"],
     zip_safe=True,
     maintainer="has_control maintainers",
     maintainer_email="maintainers@has-control.dev",

@@ -540,6 +540,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --controller: |du| [m] counted as a match (default 0: bit for bit)")
     rp2.set_defaults(func=cmd_replay)
 
+    from has_control.cli import landscape
+    ls = sub.add_parser("landscape", help="J over 2-D slices of the gain space: heatmaps, bound and minima marked")
+    landscape.add_arguments(ls)
+    ls.set_defaults(func=landscape.run)
+
     for name in NODES:
         sub.add_parser(name, help=f"run the {name} node; what follows goes to ROS (--ros-args -p k:=v ...)")
     return p

@@ -189,6 +189,23 @@ class TuneResult:
                     "episodes": self.result.nfev * self.scenarios} if self.scenarios else {})}
 
 
+def make_objective(cfg: Config, tuning: Tuning,
+                   batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> Callable[[np.ndarray], np.ndarray]:
+    """What a tuning session minimises: (P, 3) gains -> P costs J on ``cfg``'s
+    nominal episode, or (robust tuning) the aggregate of J over ``tuning.scenarios``;
+    ``batch``: the batch evaluator (default :func:`~has_control.core.episode.evaluate_configs`)."""
+    run = batch or evaluate_configs
+    if tuning.scenarios:
+        configs = scenario_configs(cfg, tuning.scenarios)
+
+        def objective(k):
+            return tuning.aggregate(run(k, configs)[:, :, 0])
+    else:
+        def objective(k):
+            return run(k, [cfg])[:, 0, 0]
+    return objective
+
+
 def tune(cfg: Config | None = None, tuning: Tuning | None = None,
          callback: Callable[[Any], bool | None] | None = None,
          swarm=None,
@@ -212,15 +229,7 @@ def tune(cfg: Config | None = None, tuning: Tuning | None = None,
     if swarm is None:
         swarm = new_optimiser(tuning.method, tuning.bounds, tuning.swarm, tuning.restarts, tuning.seed)
     if objective is None:
-        run = batch or evaluate_configs
-        if tuning.scenarios:
-            configs = scenario_configs(cfg, tuning.scenarios)
-
-            def objective(k):
-                return tuning.aggregate(run(k, configs)[:, :, 0])
-        else:
-            def objective(k):
-                return run(k, [cfg])[:, 0, 0]
+        objective = make_objective(cfg, tuning, batch)
     t0 = time.perf_counter()
     result = drive(swarm, objective, callback)
     seconds = time.perf_counter() - t0
