@@ -12,6 +12,7 @@ from has_control.bench.evaluator import bench_evaluator
 from has_control.bench.graph import bench_graph, print_graph
 from has_control.bench.scoring import bench_scoring
 from has_control.bench.tuning import bench_optimiser, bench_paper, bench_scenarios
+from has_control.bench.tuners import print_tuners
 
 
 def main(argv=None) -> int:
@@ -27,7 +28,20 @@ def main(argv=None) -> int:
     ap.add_argument("--dask", action="store_true",
                     help="run only dask_batch('local:2') against the local batch, 80 x 20 episodes of 10 s, "
                          "Dask's per-task costs and the scaling model (about 30 s)")
+    ap.add_argument("--tuners", action="store_true",
+                    help="run only the tuning methods' study: cma-restarts, the paper's swarms, IPOP-CMA-ES, SciPy DE "
+                         "over seeds at 8000/4000/2000 evaluations (CPU-heavy: about 70 s of CPU per seed)")
+    ap.add_argument("--seeds", type=int, default=30, help="with --tuners: seeds 1..N (default 30)")
+    ap.add_argument("--methods", nargs="+", metavar="NAME", help="with --tuners: only these methods")
+    ap.add_argument("--budgets", nargs="+", type=int, metavar="N",
+                    help="with --tuners: evaluations (default 8000 4000 2000)")
+    ap.add_argument("--robust", action="store_true",
+                    help="with --tuners: the robust objective (CVaR 0.2 over config/scenarios.yaml, 2 s episodes)")
+    ap.add_argument("--markdown", metavar="FILE.md", help="with --tuners: also write the table there")
     args = ap.parse_args(argv)
+    if args.tuners:
+        print_tuners(args.seeds, args.methods, args.budgets, args.robust, args.markdown)
+        return 0
     if args.dask:
         print_dask(bench_dask(repeats=args.repeats))
         return 0

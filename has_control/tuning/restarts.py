@@ -7,7 +7,9 @@ every core busy although each search is small. Each search starts at a seeded
 random point of the box with a step of ``sigma`` (a fraction of the box) and
 ends when it has converged (its best J changed by less than ``tolerance``, a
 fraction of J, over ``window`` generations, or pycma's own ``tolx``); a new
-search from a new random point takes its place. When the evaluations left
+search takes its place: from where it ended with the small step
+``polish_sigma`` when it found the best J so far (a refinement), else from a
+new random point. When the evaluations left
 are ``polish`` or fewer (at most a third of the budget), the global phase ends and the best ``polish_starts``
 distinct points found are refined side by side by CMA-ES with a small step
 ``polish_sigma``, until they converge or the budget ``evaluations`` is spent.
@@ -151,23 +153,27 @@ class Restarts:
         m = self.lower.size
         found: list[tuple[float, np.ndarray]] = []            # (J, z) at which searches ended
         polish = min(s.polish, s.evaluations // 3)
-        runs = [[self._search(self.rng.uniform(0.0, 1.0, m), s.sigma), []] for _ in range(s.side_by_side)]
+        runs = [[self._search(self.rng.uniform(0.0, 1.0, m), s.sigma), [], False] for _ in range(s.side_by_side)]
         while s.evaluations - self.evaluations > polish:
             left = s.evaluations - polish - self.evaluations
             keep = max(1, math.ceil(left / s.population))
-            found += [(float(es.best.f), np.array(es.best.x)) for es, _ in runs[keep:] if es.best.x is not None]
+            found += [(float(es.best.f), np.array(es.best.x)) for es, _, _ in runs[keep:] if es.best.x is not None]
             runs = runs[:keep]
-            asked = [es.ask() for es, _ in runs]
+            asked = [es.ask() for es, _, _ in runs]
             costs = yield np.vstack([self._to_gains(np.array(z)) for z in asked])
-            for i, ((es, bests), z) in enumerate(zip(runs, asked)):
+            for i, ((es, bests, refining), z) in enumerate(zip(runs, asked)):
                 f = costs[i * s.population:(i + 1) * s.population]
                 es.tell(z, [float(v) for v in f])
                 bests.append(float(np.min(f)))
                 if self._converged(es, bests):
+                    best = not found or es.best.f < min(q for q, _ in found)
                     found.append((float(es.best.f), np.array(es.best.x)))
-                    runs[i] = [self._search(self.rng.uniform(0.0, 1.0, m), s.sigma), []]
+                    if best and not refining:        # a new best basin: refine it with a small step at once
+                        runs[i] = [self._search(np.array(es.best.x), s.polish_sigma), [], True]
+                    else:
+                        runs[i] = [self._search(self.rng.uniform(0.0, 1.0, m), s.sigma), [], False]
         self.phase = "polish"
-        found += [(float(es.best.f), np.array(es.best.x)) for es, _ in runs if es.best.x is not None]
+        found += [(float(es.best.f), np.array(es.best.x)) for es, _, _ in runs if es.best.x is not None]
         starts = _distinct(found, s.polish_starts)
         runs = [[self._search(z, s.polish_sigma), []] for z in starts]
         while runs and self.evaluations < s.evaluations:
