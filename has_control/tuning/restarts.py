@@ -61,14 +61,14 @@ class RestartSettings:
 
     evaluations: int = 4000
     population: int = 7
-    side_by_side: int = 8
+    side_by_side: int = 2
     sigma: float = 0.3
     tolerance: float = 1e-5
     window: int = 10
     polish: int = 600
     polish_starts: int = 2
     polish_sigma: float = 0.02
-    scale: str = "linear"
+    scale: str = "log"
 
     def validate(self) -> "RestartSettings":
         def bad(name, why):
