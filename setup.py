@@ -17,7 +17,7 @@ setup(
         # ``ros2 run has_control plant`` (colcon): lib/has_control/<node>; pip puts only has-control* on PATH
         ("lib/" + package_name, glob("resource/ros2_run/*")),
     ],
-    install_requires=["setuptools", "numpy", "numba", "matplotlib", "pyyaml", "rosbags", "zstandard"],
+    install_requires=["setuptools", "numpy", "numba", "matplotlib", "pyyaml", "rosbags", "zstandard", "cma"],
     zip_safe=True,
     maintainer="has_control maintainers",
     maintainer_email="maintainers@has-control.dev",

@@ -298,7 +298,7 @@ def test_tune_through_dask_survives_a_worker_killed_mid_task(dask_processes, tmp
     import cloudpickle
     address, _, workers = dask_processes
     cfg = build_config(dict(SHORT, **{"simulation.horizon": 0.5}), base=Config())
-    tuning = Tuning().replace(particles=16, iterations=4)
+    tuning = Tuning().replace(variant="pso-cp-tvac", particles=16, iterations=4)
     expected = tune(cfg, tuning)
     armed, claimed = tmp_path / "armed", tmp_path / "claimed"
     calls = []
@@ -365,7 +365,7 @@ def test_a_session_started_on_dask_resumes_locally_to_the_same_result(tmp_path):
     from has_control.config import Scenario
     from has_control.tuning.session import run_session
     cfg = build_config({"simulation.horizon": 1.2}, base=Config())
-    t = Tuning().replace(particles=8, iterations=4, aggregate=parse_aggregate("max"),
+    t = Tuning().replace(variant="pso-cp-tvac", particles=8, iterations=4, aggregate=parse_aggregate("max"),
                          scenarios=(Scenario("nominal"), Scenario("heavy", (("plant.mass", 1800.0),))))
     whole = tune(cfg, t)
 

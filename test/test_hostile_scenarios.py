@@ -98,8 +98,9 @@ def test_stack_tuning_with_plant_options_scores_what_the_graph_runs(domain_id):
     from has_control.tuning.tuner import load_tuning, tune
     cfg = with_horizon(build_config({"plant.mass": 1700.0, "plant.valve_limit": 4e-3, "noise.position": 1e-6,
                                      "plant.valve_time_constant": 1e-3, "noise.seed": 7}), 1.2)
-    out = run_tuning_stack(cfg, {"iterations": 2, "particles": 3}, evaluator="batch", domain_id=domain_id)
-    ref = tune(cfg, load_tuning().replace(iterations=2, particles=3))
+    out = run_tuning_stack(cfg, {"variant": "pso-cp-tvac", "iterations": 2, "particles": 3}, evaluator="batch",
+                           domain_id=domain_id)
+    ref = tune(cfg, load_tuning().replace(variant="pso-cp-tvac", iterations=2, particles=3))
     assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun == out["validation"]["J"]
 
 

@@ -91,7 +91,7 @@ def test_an_exact_recording_gives_the_plant_and_the_cli_writes_a_params_file_nod
     write_trace(w, simulate(cfg), cfg)
     w.close()
     out = tmp_path / "identified.yaml"
-    r = subprocess.run([sys.executable, "-m", "has_control.cli.main", "identify", str(bag), "--out", str(out),
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "identify", str(bag), "--out", str(out),
                         "--json"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout)

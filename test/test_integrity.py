@@ -145,13 +145,13 @@ def session_dir(tmp_path_factory):
     from has_control.tuning.session import Session
     from has_control.tuning.tuner import load_tuning, tune
     base = tmp_path_factory.mktemp("sessions")
-    args = ["tune", "--particles", "4", "--iterations", "6", "--duration", "1.5", "--json"]
+    args = ["tune", "--variant", "pso-cp-tvac", "--particles", "4", "--iterations", "6", "--duration", "1.5", "--json"]
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         assert main(args) == 0
     full = json.loads(buf.getvalue())
     cfg = with_horizon(Config(), 1.5)
-    tuning = load_tuning().replace(particles=4, iterations=6)
+    tuning = load_tuning().replace(variant="pso-cp-tvac", particles=4, iterations=6)
     session = Session(base / "s", tuning, cfg)
 
     class Stop(Exception):

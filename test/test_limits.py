@@ -120,7 +120,8 @@ def test_fifo_device_directory_and_oversize_file_are_refused_without_reading(cap
 
 @pytest.mark.ros
 def test_ctrl_c_in_the_first_second_is_one_line_and_130():
-    for args in (["tune", "--iterations", "1", "--particles", "2"], ["stack", "--duration", "2"]):
+    for args in (["tune", "--variant", "pso-cp-tvac", "--iterations", "1", "--particles", "2"],
+                 ["stack", "--duration", "2"]):
         p = subprocess.Popen([sys.executable, "-m", "has_control.cli", *args],
                              stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
         time.sleep(0.4)

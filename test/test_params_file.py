@@ -12,8 +12,9 @@ from has_control.nodes.controller_node import ControllerNode
 @pytest.mark.ros
 def test_tune_out_writes_a_params_file_the_controller_starts_with(tmp_path, domain_id):
     out = tmp_path / "session"
-    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tune", "--particles", "4", "--iterations", "2",
-                        "--duration", "1.5", "--out", str(out)], capture_output=True, text=True, timeout=600)
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tune", "--variant", "pso-cp-tvac",
+                        "--particles", "4", "--iterations", "2", "--duration", "1.5", "--out", str(out)],
+                       capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     tuned = json.loads((out / "tune.json").read_text())["gains"]
     for namespace in ("", "/sim0"):                       # /** reaches a controller in any namespace
@@ -33,8 +34,8 @@ def test_the_tuner_node_writes_the_params_file_too(tmp_path, domain_id):
     import os
     import yaml
     rec = tmp_path / "rec"
-    r = subprocess.run([sys.executable, "-m", "has_control.cli", "stack", "--tune", "--iterations", "1",
-                        "--particles", "2", "--duration", "1.5", "--record", str(rec), "--json"],
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", "stack", "--tune", "--variant", "pso-cp-tvac",
+                        "--iterations", "1", "--particles", "2", "--duration", "1.5", "--record", str(rec), "--json"],
                        capture_output=True, text=True, timeout=600, env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)

@@ -14,7 +14,7 @@ from has_control.cli import main
 from has_control.common.errors import HasControlError
 from has_control.common.files import DirectoryLock, write_atomic
 
-TUNE = ["tune", "--particles", "4", "--iterations", "3", "--duration", "1.5"]
+TUNE = ["tune", "--variant", "pso-cp-tvac", "--particles", "4", "--iterations", "3", "--duration", "1.5"]
 
 
 def run(capsys, *argv):

@@ -117,7 +117,7 @@ def test_nominal_scenario_is_the_nominal_episode():
 
 def test_robust_tuning_resumes_to_the_same_result(small, tmp_path):
     cfg = _cfg(1.2)
-    t = Tuning().replace(particles=8, iterations=4, scenarios=load_scenarios(small, cfg),
+    t = Tuning().replace(variant="pso-cp-tvac", particles=8, iterations=4, scenarios=load_scenarios(small, cfg),
                          aggregate=parse_aggregate("cvar:0.5"))
     whole = tune(cfg, t)
     assert whole.as_json()["scenarios"] == 6 and whole.as_json()["aggregate"] == "cvar:0.5"
@@ -135,13 +135,14 @@ def test_robust_tuning_resumes_to_the_same_result(small, tmp_path):
 
 
 def test_cli_tune_with_scenarios_equals_the_library(small, capsys):
-    args = ["tune", "--particles", "8", "--iterations", "3", "--duration", "1.2", "--scenarios", str(small),
+    args = ["tune", "--variant", "pso-cp-tvac", "--particles", "8", "--iterations", "3", "--duration", "1.2",
+            "--scenarios", str(small),
             "--aggregate", "max", "--json"]
     assert main(args) == 0
     out = json.loads(capsys.readouterr().out)
     cfg = _cfg(1.2)
-    lib = tune(cfg, Tuning().replace(particles=8, iterations=3, scenarios=load_scenarios(small, cfg),
-                                     aggregate=Aggregate("max")))
+    lib = tune(cfg, Tuning().replace(variant="pso-cp-tvac", particles=8, iterations=3,
+                                     scenarios=load_scenarios(small, cfg), aggregate=Aggregate("max")))
     assert out["gains"] == list(lib.gains) and out["J"] == lib.result.fun and out["scenarios"] == 6
 
 
@@ -165,6 +166,6 @@ def test_cli_robustness_prints_writes_and_plots(small, tmp_path, capsys):
     (["--scenarios", "nope.yaml"], "nope.yaml"),
 ])
 def test_cli_tune_scenario_errors_are_one_line(capsys, extra, culprit):
-    assert main(["tune", "--particles", "2", "--iterations", "1", *extra]) == 2
+    assert main(["tune", "--variant", "pso-cp-tvac", "--particles", "2", "--iterations", "1", *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and culprit in err, err

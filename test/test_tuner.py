@@ -26,9 +26,10 @@ def cli(*args, domain=None, **kw):
 
 @pytest.mark.ros
 def test_stack_tune_sets_the_best_gains_through_parameters(domain_id):
-    r = cli("stack", "--tune", "--iterations", 3, "--particles", 4, "--duration", 1.5, domain=domain_id)
+    r = cli("stack", "--tune", "--variant", "pso-cp-tvac", "--iterations", 3, "--particles", 4, "--duration", 1.5,
+            domain=domain_id)
     assert r.returncode == 0, r.stderr
-    best = load_tuning().replace(iterations=3, particles=4)
+    best = load_tuning().replace(variant="pso-cp-tvac", iterations=3, particles=4)
     ref = tune(with_horizon(Config(), 1.5), best)
     k = ", ".join(f"{g:.2f}" for g in ref.gains)
     assert f"best k = ({k}), J = {ref.result.fun:.6e}" in r.stdout
@@ -39,10 +40,10 @@ def test_stack_tune_sets_the_best_gains_through_parameters(domain_id):
 @pytest.mark.ros
 def test_graph_evaluation_over_two_lanes_equals_the_batch_evaluator(domain_id, tmp_path):
     cfg = with_horizon(Config(), 1.5)
-    out = run_tuning_stack(cfg, {"iterations": 2, "particles": 3}, evaluator="graph",
+    out = run_tuning_stack(cfg, {"variant": "pso-cp-tvac", "iterations": 2, "particles": 3}, evaluator="graph",
                            namespaces=["/sim0", "/sim1"], record=str(tmp_path / "rec"), domain_id=domain_id,
                            keep_episodes=True)
-    ref = tune(cfg, load_tuning().replace(iterations=2, particles=3))
+    ref = tune(cfg, load_tuning().replace(variant="pso-cp-tvac", iterations=2, particles=3))
     assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun
     assert out["history"] == [h.best_cost for h in ref.result.history]
     assert out["controller_gains"] == list(ref.gains)
@@ -60,7 +61,7 @@ def test_diverging_candidates_score_inf_and_the_tuner_carries_on(domain_id, tmp_
     bounds = tmp_path / "wild.yaml"
     bounds.write_text("/**:\n  ros__parameters:\n    swarm:\n      lower: [9000.0, 9000.0, 9000.0]\n"
                       "      upper: [10000.0, 10000.0, 10000.0]\n")
-    out = run_tuning_stack(cfg, {"iterations": 2, "particles": 2}, config_files=[bounds],
+    out = run_tuning_stack(cfg, {"variant": "pso-cp-tvac", "iterations": 2, "particles": 2}, config_files=[bounds],
                            evaluator="graph", validate_best=False, domain_id=domain_id)
     assert out["J"] == "inf" and out["evaluations"] == 4 and out["iterations"] == 2
 
@@ -68,7 +69,7 @@ def test_diverging_candidates_score_inf_and_the_tuner_carries_on(domain_id, tmp_
 @pytest.mark.system
 @pytest.mark.parametrize("iterations", [40])
 def test_a_session_killed_mid_way_resumes_to_the_same_result(tmp_path, iterations):
-    args = ["tune", "--particles", 40, "--iterations", iterations, "--json"]
+    args = ["tune", "--variant", "pso-cp-tvac", "--particles", 40, "--iterations", iterations, "--json"]
     full = cli(*args)
     assert full.returncode == 0, full.stderr
     d = tmp_path / "session"
@@ -132,6 +133,7 @@ def test_graph_lanes_in_separate_processes_equal_the_batch_evaluator(domain_id, 
                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         rec = tmp_path / "rec"
         r = subprocess.run(cli_ + ["tuner", "--ros-args", "-p", "evaluator:=graph", "-p", "lanes:=['/sim0','/sim1']",
+                                   "-p", "swarm.variant:=pso-cp-tvac",
                                    "-p", "swarm.iterations:=2", "-p", "swarm.particles:=3",
                                    "-p", "simulation.horizon:=1.5", "-p", f"record:={rec}",
                                    "-p", "keep_episodes:=true"],
@@ -143,7 +145,7 @@ def test_graph_lanes_in_separate_processes_equal_the_batch_evaluator(domain_id, 
         for p in procs:
             p.wait(timeout=30)
     out = json.loads((rec / "tune.json").read_text())
-    ref = tune(with_horizon(Config(), 1.5), load_tuning().replace(iterations=2, particles=3))
+    ref = tune(with_horizon(Config(), 1.5), load_tuning().replace(variant="pso-cp-tvac", iterations=2, particles=3))
     assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun
     assert out["history"] == [h.best_cost for h in ref.result.history]
     assert len(list((rec / "episodes").iterdir())) == 6                 # every candidate ran through a lane
@@ -156,10 +158,10 @@ def test_the_tuner_node_tunes_on_scenarios_as_the_library_does(domain_id, tmp_pa
     from has_control.config import load_scenarios
     cfg = with_horizon(Config(), 1.5)
     path = CONFIG_DIR / "scenarios.yaml"
-    out = run_tuning_stack(cfg, {"iterations": 2, "particles": 8}, validate_best=False, domain_id=domain_id,
-                           scenarios=str(path), aggregate="cvar:0.2")
-    ref = tune(cfg, load_tuning().replace(iterations=2, particles=8, scenarios=load_scenarios(path, cfg),
-                                          aggregate=parse_aggregate("cvar:0.2")))
+    out = run_tuning_stack(cfg, {"variant": "pso-cp-tvac", "iterations": 2, "particles": 8}, validate_best=False,
+                           domain_id=domain_id, scenarios=str(path), aggregate="cvar:0.2")
+    ref = tune(cfg, load_tuning().replace(variant="pso-cp-tvac", iterations=2, particles=8,
+                                          scenarios=load_scenarios(path, cfg), aggregate=parse_aggregate("cvar:0.2")))
     assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun and out["scenarios"] == 20
 
 

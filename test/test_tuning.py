@@ -44,7 +44,7 @@ def test_full_tuning_beats_a_6x6x8_grid_search():
 
 def test_short_tuning_improves_on_its_first_iteration_and_beats_manual_gains():
     cfg = Config()
-    res = tune(cfg, Tuning().replace(particles=16, iterations=8, seed=2))
+    res = tune(cfg, Tuning().replace(variant="pso-cp-tvac", particles=16, iterations=8, seed=2))
     best = res.result.best_costs()
     assert np.all(np.diff(best) <= 0)
     assert res.result.fun < evaluate([[150.0, 158.0, 162.0]], cfg)[0]
@@ -57,7 +57,7 @@ def test_tune_cli_json_is_reproducible_and_has_the_documented_keys():
     outs = [json.loads(subprocess.run(args, capture_output=True, text=True, check=True).stdout)
             for _ in range(2)]
     assert set(outs[0]) == {"variant", "seed", "gains", "J", "iterations", "evaluations",
-                            "seconds", "history"}
+                            "seconds", "history", "bounds"}
     for o in outs:
         o.pop("seconds")                     # wall time: the one key that may differ
     assert outs[0] == outs[1]

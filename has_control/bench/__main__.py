@@ -17,6 +17,7 @@ from has_control.bench.foxglove import bench_foxglove
 from has_control.bench.graph import bench_graph, print_graph
 from has_control.bench.scoring import bench_scoring
 from has_control.bench.tuning import bench_optimiser, bench_paper, bench_scenarios
+from has_control.bench.tuners import print_tuners
 
 
 def main(argv=None) -> int:
@@ -34,9 +35,22 @@ def main(argv=None) -> int:
                          "Dask's per-task costs and the scaling model (about 30 s)")
     ap.add_argument("--foxglove", action="store_true",
                     help="run only the live view's cost per message (no client, one client, a list append)")
+    ap.add_argument("--tuners", action="store_true",
+                    help="run only the tuning methods' study: cma-restarts, the paper's swarms, IPOP-CMA-ES, SciPy DE "
+                         "over seeds at 8000/4000/2000 evaluations (CPU-heavy: about 70 s of CPU per seed)")
+    ap.add_argument("--seeds", type=int, default=30, help="with --tuners: seeds 1..N (default 30)")
+    ap.add_argument("--methods", nargs="+", metavar="NAME", help="with --tuners: only these methods")
+    ap.add_argument("--budgets", nargs="+", type=int, metavar="N",
+                    help="with --tuners: evaluations (default 8000 4000 2000)")
+    ap.add_argument("--robust", action="store_true",
+                    help="with --tuners: the robust objective (CVaR 0.2 over config/scenarios.yaml, 2 s episodes)")
+    ap.add_argument("--markdown", metavar="FILE.md", help="with --tuners: also write the table there")
     args = ap.parse_args(argv)
     if args.foxglove:
         bench_foxglove()
+        return 0
+    if args.tuners:
+        print_tuners(args.seeds, args.methods, args.budgets, args.robust, args.markdown)
         return 0
     if args.dask:
         print_dask(bench_dask(repeats=args.repeats))

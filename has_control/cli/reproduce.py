@@ -20,7 +20,7 @@ def add_arguments(p) -> None:
     p.add_argument("--force", action="store_true", help="write into DIR even if it is not empty")
     p.add_argument("--particles", type=positive_int, metavar="N", help=argparse.SUPPRESS)
     p.add_argument("--iterations", type=positive_int, metavar="N", help=argparse.SUPPRESS)
-    p.set_defaults(duration=None, variant=None, seed=None)
+    p.set_defaults(duration=None, variant="pso-cp-tvac", seed=None, evaluations=None)
 
 
 def run(args) -> int:

@@ -9,7 +9,10 @@ from has_control import quiet_interrupts
 from has_control.cli.args import add_config, add_json, gains_arg, load, namespace, port, positive_int
 from has_control.cli.status import StatusLine
 from has_control.common.errors import HasControlError
-from has_control.tuning.swarm import VARIANTS
+from has_control.cli.tune import check_method_options
+from has_control.tuning.bounds import BoundDiagnostics
+from has_control.tuning.methods import METHODS
+from has_control.tuning.tuner import load_tuning
 
 HELP = "run plant and controller nodes in one process, lock-step or real time"
 
@@ -29,8 +32,9 @@ def add_arguments(p) -> None:
                    help="pace the loop to wall time (paced lock-step; misses and lateness in --json)")
     p.add_argument("--tune", action="store_true",
                    help="add the tuner node: tune the gains, set the best on the controller")
-    p.add_argument("--variant", choices=tuple(VARIANTS), help="with --tune")
+    p.add_argument("--variant", choices=tuple(METHODS), help="with --tune")
     p.add_argument("--seed", type=int, help="with --tune")
+    p.add_argument("--evaluations", type=positive_int, metavar="N", help="with --tune (cma-restarts)")
     p.add_argument("--particles", type=positive_int, metavar="N", help="with --tune")
     p.add_argument("--iterations", type=positive_int, metavar="N", help="with --tune")
     p.add_argument("--evaluator", choices=("batch", "graph"), default="batch",
@@ -97,7 +101,9 @@ def run(args) -> int:
 
 def _tune(args, cfg, run_tuning_stack) -> int:
     changes = {k: v for k, v in (("seed", args.seed), ("particles", args.particles),
-                                 ("iterations", args.iterations), ("variant", args.variant)) if v is not None}
+                                 ("iterations", args.iterations), ("variant", args.variant),
+                                 ("evaluations", args.evaluations)) if v is not None}
+    check_method_options(args, args.variant or load_tuning(args.config or []).method)
     out = run_tuning_stack(cfg, changes, config_files=args.config or [], evaluator=args.evaluator,
                            namespaces=args.lanes, record=args.record, validate_best=True,
                            keep_episodes=args.keep_episodes)
@@ -108,6 +114,9 @@ def _tune(args, cfg, run_tuning_stack) -> int:
         print(f"tuner ({out['variant']}, {out['evaluator']} evaluator, seed {out['seed']}): "
               f"best k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), J = {out['J']:.6e} after "
               f"{out['iterations']} iterations, {out['evaluations']} evaluations, {out['seconds']:.1f} s")
+        if "bounds" in out:
+            for line in BoundDiagnostics.from_json(out["bounds"]).lines():
+                print(line)
         v = out.get("validation")
         if v:
             print(f"validated through the graph: J = {v['J']:.6e}, e_max = {v['e_max']:.4e} m"

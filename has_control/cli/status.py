@@ -37,7 +37,6 @@ class Progress(StatusLine):
         now = time.perf_counter()
         self.t0 = self.t0 or now - 1e-9
         rate = swarm.evaluations / max(now - self.t0, 1e-9)
-        total = swarm.settings.iterations
-        filled = int(30 * swarm.iteration / total)
-        self.show(f"{swarm.settings.variant} seed {swarm.seed} [{'#' * filled}{'.' * (30 - filled)}] "
-                  f"{swarm.iteration}/{total}  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s")
+        filled = int(30 * swarm.progress())
+        self.show(f"{swarm.name} seed {swarm.seed} [{'#' * filled}{'.' * (30 - filled)}] "
+                  f"{swarm.evaluations} evaluations  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s")

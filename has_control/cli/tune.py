@@ -11,17 +11,19 @@ from has_control.cli.args import (add_config, add_duration, add_json, batch, che
 from has_control.cli.status import Progress
 from has_control.common.errors import HasControlError
 from has_control.tuning.session import SESSION, run_session
-from has_control.tuning.swarm import VARIANTS
+from has_control.tuning.methods import METHODS, is_swarm
 from has_control.tuning.tuner import load_tuning, robust_tuning
 
-HELP = "tune k1, k2, k3 with a particle swarm"
+HELP = "tune k1, k2, k3 (cma-restarts, or the paper's particle swarms)"
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--variant", choices=tuple(VARIANTS), help="optimiser (default: config/tuner.yaml, pso-cp-tvac)")
+    p.add_argument("--variant", choices=tuple(METHODS),
+                   help="method (default: config/tuner.yaml, cma-restarts; pso-cp-tvac: the paper's)")
     p.add_argument("--seed", type=int, help="random seed (default 1)")
-    p.add_argument("--particles", type=positive_int, metavar="N", help="swarm size (default 80)")
-    p.add_argument("--iterations", type=positive_int, metavar="N", help="iterations (default 100)")
+    p.add_argument("--evaluations", type=positive_int, metavar="N", help="cma-restarts: budget (default 4000)")
+    p.add_argument("--particles", type=positive_int, metavar="N", help="swarms: swarm size (default 80)")
+    p.add_argument("--iterations", type=positive_int, metavar="N", help="swarms: iterations (default 100)")
     add_config(p, "ros__parameters YAML (episode and swarm.* keys; repeatable)")
     add_duration(p)
     p.add_argument("--out", metavar="DIR",
@@ -42,12 +44,26 @@ def tuning_args(args):
     """The tuning settings of ``--config`` with the command line's changes."""
     t = load_tuning(args.config or [])
     changes = {k: v for k, v in (("variant", args.variant), ("seed", args.seed),
-                                 ("particles", args.particles), ("iterations", args.iterations))
+                                 ("particles", args.particles), ("iterations", args.iterations),
+                                 ("evaluations", getattr(args, "evaluations", None)))
                if v is not None}
     try:
-        return t.replace(**changes)
+        t = t.replace(**changes)
     except HasControlError as exc:
         raise HasControlError(f"command line: {exc}") from None
+    check_method_options(args, t.method)
+    return t
+
+
+def check_method_options(args, method: str) -> None:
+    """--particles/--iterations belong to the swarms, --evaluations to cma-restarts."""
+    swarm = is_swarm(method)
+    for option, value, ok in (("--particles", args.particles, swarm), ("--iterations", args.iterations, swarm),
+                              ("--evaluations", getattr(args, "evaluations", None), not swarm)):
+        if value is not None and not ok:
+            raise HasControlError(f"{option} {value}: not an option of the method {method} "
+                                  f"({'--particles/--iterations are' if swarm else '--evaluations is'})"
+                                  + ("" if swarm else "; --variant pso-cp-tvac for the paper's swarm"))
 
 
 def robust(args, cfg, tuning):
@@ -94,6 +110,8 @@ def run(args) -> int:
         print(f"{res.variant}, seed {res.seed}: k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), "
               f"J = {res.result.fun:.6e}{over} after {res.result.nit} iterations, "
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
+        for line in res.bounds.lines() if res.bounds is not None else ():
+            print(line)
         if session.directory:
             print(f"wrote {session.directory / 'tune.json'}, gains.yaml (a --params-file for the controller), "
                   f"convergence.png, gains.png, tracking.png and the session bag {session.bag}")

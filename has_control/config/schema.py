@@ -144,7 +144,7 @@ _register("metrics", "episode", {
 
 #: Keys that belong to the nodes and tools, not to the episode; accepted and
 #: passed through (their owners validate them).
-_PASSTHROUGH_PREFIXES = ("controller.", "tuner.", "swarm.", "recorder.")
+_PASSTHROUGH_PREFIXES = ("controller.", "tuner.", "swarm.", "restarts.", "recorder.")
 _PASSTHROUGH_KEYS = {"use_sim_time"}
 
 

@@ -1,6 +1,7 @@
-"""The tuner node: tunes the controller's gains with a particle swarm.
+"""The tuner node: tunes the controller's gains (``swarm.variant``: cma-restarts,
+the default, or the paper's particle swarms) and reports the bound diagnostics.
 
-It drives the swarm's ask/tell interface (:func:`has_control.tuning.tuner.tune`,
+It drives the optimiser's ask/tell interface (:func:`has_control.tuning.tuner.tune`,
 the same code as ``has-control tune``). With ``evaluator: graph`` every
 candidate runs through the node graph: the tuner sets the controller's
 gains with ``set_parameters_atomically``, resets plant and controller
@@ -13,7 +14,7 @@ evaluator (fast); either way the best gains are then set on every lane's
 controller, and ``validate_best`` re-runs them through the graph, recorded
 and scored from the bag.
 
-Parameters: ``swarm.*`` (config/tuner.yaml), the model and episode
+Parameters: ``swarm.*`` and ``restarts.*`` (config/tuner.yaml), the model and episode
 (``actuator.*``, ``simulation.*``, ``cost.*``, ``metrics.*``, ...; the same
 files as plant and controller) and the world the batch evaluator simulates
 and the bags record (``plant.*``, ``noise.*``, as plant and controller take
@@ -56,7 +57,6 @@ from rcl_interfaces.msg import ParameterDescriptor
 from has_control.bag import BagError, score_bag
 from has_control.common.errors import ConfigError, HasControlError
 from has_control.core.episode import simulate
-from has_control.tuning.swarm import Swarm
 from has_control.tuning.tuner import Tuning, load_tuning, robust_tuning, tuning_from_parameters, tuning_parameters
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 from has_control.nodes.recorder import Recorder
@@ -277,7 +277,8 @@ class TunerNode(Node):
         return float(self.get_parameter("lane_timeout").value)
 
     def _tuning(self) -> Tuning:
-        flat = {f"swarm.{k}": p.value for k, p in self.get_parameters_by_prefix("swarm").items()}
+        flat = {f"{prefix}.{k}": p.value for prefix in ("swarm", "restarts")
+                for k, p in self.get_parameters_by_prefix(prefix).items()}
         flat = {k: (list(v) if hasattr(v, "tolist") or isinstance(v, (list, tuple)) else v) for k, v in flat.items()}
         return tuning_from_parameters(flat, {k: f"parameter {k} of {self.get_fully_qualified_name()}" for k in flat})
 
@@ -376,17 +377,16 @@ class TunerNode(Node):
             self._announce_graph(cfg, keep, episodes)
             return self._graph_objective(cfg, episodes, timeout, keep=keep)
 
-        def on_iteration(sw: Swarm) -> None:
+        def on_iteration(sw) -> None:
             k = sw.gbest_x
             elapsed = time.perf_counter() - t0
-            done = max(sw.iteration, 1)
-            eta = elapsed / done * max(sw.settings.iterations - sw.iteration, 0)
-            self.status = (f"running: iteration {sw.iteration}/{sw.settings.iterations}, best J = {sw.gbest_f:.6e}, "
-                           f"ETA {eta:.0f} s")
+            progress = sw.progress()                   # the share of the budget used, 0..1
+            eta = elapsed / progress * (1.0 - progress) if progress > 0 else math.inf
+            self.status = f"running: {sw.name} {100 * progress:.0f} %, best J = {sw.gbest_f:.6e}, ETA {eta:.0f} s"
             self.progress_pub.publish(PROGRESS_LAYOUT.encode([
                 float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations), elapsed, eta]))
             if sw.iteration % every == 0 or sw.done:
-                log.info(f"iteration {sw.iteration}/{sw.settings.iterations}: best J = {sw.gbest_f:.6e} "
+                log.info(f"{sw.name} iteration {sw.iteration} ({100 * progress:.0f} %): best J = {sw.gbest_f:.6e} "
                          f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations, "
                          f"ETA {eta:.0f} s")
             self._check_cancel()
@@ -400,6 +400,9 @@ class TunerNode(Node):
                               record_validation=record_validation if validate and lanes_up() else None,
                               announce=log.info, on_warning=log.warning)
             res, out, best = run.result, dict(run.out), run.result.gains
+            if res.bounds is not None:
+                for line in res.bounds.lines():
+                    (log.warning if line.startswith("warning") else log.info)(line)
             out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes] if lanes_up() else [])
             if not lanes_up():
                 if validate:

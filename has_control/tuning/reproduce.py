@@ -132,6 +132,14 @@ def write_report(rows: list[Row], out: Path, cfg: Config | None = None,
                                          f"paper's tuned, {gains_text(PAPER_TUNED_GAINS.as_tuple())}"),
                            view_of_trace(traces["ours"], cfg, f"PSO+CP+TVAC (ours), {gains_text(tuned)}")],
                           out / "fig7-8_tracking.png", "Figs. 7-8: displacement tracking and tracking error"))
+    lines += ["", "## Bound diagnostics of each variant's best run", ""]
+    tables["bounds"] = {}
+    for r in rows:
+        b = best[r.label]
+        warned = sum(bool(x.bounds and x.bounds.warnings) for x in r.runs)
+        lines.append(f"* {r.label} (seed {b.seed}; {warned} of {len(r.runs)} runs warned): "
+                     + ("; ".join(b.bounds.lines()) if b.bounds is not None else "not diagnosed"))
+        tables["bounds"][r.label] = b.bounds.as_json() if b.bounds is not None else None
     lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figs]
     lines += ["", "## Where we agree with the paper, and where not", "",
               _verdict(rows, traces, upper)]

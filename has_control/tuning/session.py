@@ -3,11 +3,15 @@
 A session bag (``DIR/session``, rosbag2 MCAP) holds, as std_msgs/String JSON:
 
 * ``/tuner/settings``: the tuning settings and every model parameter, first;
-* ``/tuner/iteration``: per iteration, every particle's position and cost,
-  gbest and the swarm's mean and spread (an :class:`IterationRecord`);
-* ``/tuner/swarm``: per iteration, the swarm state needed to resume (positions,
-  velocities, personal bests, the random generator's state);
-* ``/tuner/result``: the final result (the keys of ``tune --json``);
+* ``/tuner/iteration``: per iteration (one batch of candidates), every
+  candidate's position and cost, the best so far and the batch's mean and
+  spread (an :class:`IterationRecord`);
+* ``/tuner/swarm``: per iteration, the optimiser's state needed to resume (a
+  swarm: positions, velocities, personal bests, the random generator's state;
+  ``cma-restarts``: its settings and seed, resumed by replaying the costs of
+  the iteration records);
+* ``/tuner/result``: the final result (the keys of ``tune --json``, with the
+  bound diagnostics);
 
 and the validation run of the best gains under ``/validation/...``, the same
 topics a recorded run has, so ``has-control score DIR/session`` scores it.
@@ -36,6 +40,9 @@ from has_control.common.errors import HasControlError, shown
 from has_control.common.files import DirectoryLock
 from has_control.common.json_bounded import loads_bounded
 from has_control.config import build_config
+from has_control.tuning.bounds import BoundDiagnostics
+from has_control.tuning.methods import new_optimiser, restore as restore_optimiser
+from has_control.tuning.restarts import Restarts
 from has_control.tuning.swarm import Swarm, record_dict, record_from
 from has_control.tuning.tuner import TuneResult, Tuning, tuning_from_json, tuning_json
 
@@ -105,7 +112,7 @@ class Session:
         """Let another process write this session (also when this one ends)."""
         self.lock.release()
 
-    def record(self, swarm: Swarm) -> None:
+    def record(self, swarm) -> None:
         """After an iteration: its record and the swarm's state, then flush."""
         now = time.time_ns()
         self.writer.write(ITERATION, now, _string(json.dumps(record_dict(swarm.history[-1]))))
@@ -125,7 +132,7 @@ class Session:
 
 @dataclasses.dataclass
 class Resumed:
-    swarm: Swarm
+    swarm: object                       # the optimiser, as after the last good iteration
     tuning: Tuning
     cfg: object
     evaluator: str
@@ -176,7 +183,7 @@ def resume(directory: str | Path, on_warning=warn) -> Resumed:
         on_warning(f"{old}: records damaged or missing after iteration {k}: resuming from iteration {k}, "
                    "the last good one")
     if swarm is None:
-        swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
+        swarm = new_optimiser(tuning.method, tuning.bounds, tuning.swarm, tuning.restarts, tuning.seed)
     keep = [(SETTINGS, *settings[0])]
     keep += [(ITERATION, *r) for r in records[:k]] + [(SWARM, *x) for x in states[:k]]
     keep.sort(key=lambda m: m[1])
@@ -224,9 +231,15 @@ def _result_ok(r) -> bool:
             and isinstance(r.get("scenarios", 0), int) and isinstance(r.get("aggregate", ""), str))
 
 
-def _fits(swarm: Swarm, tuning: Tuning, k: int) -> bool:
-    """Is a restored swarm the session's after k iterations: its settings,
-    bounds and seed, P particles of 3 gains everywhere (P: swarm.particles)?"""
+def _fits(optimiser, tuning: Tuning, k: int) -> bool:
+    """Is a restored optimiser the session's after k iterations: its method,
+    settings, bounds and seed; for a swarm, P particles of 3 gains everywhere
+    (P: swarm.particles)?"""
+    if isinstance(optimiser, Restarts):
+        return (tuning.method == optimiser.name and optimiser.settings == tuning.restarts
+                and optimiser.seed == tuning.seed and optimiser.iteration == k
+                and tuple(optimiser.lower) == tuple(tuning.lower) and tuple(optimiser.upper) == tuple(tuning.upper))
+    swarm = optimiser
     p = tuning.swarm.particles
     return (swarm.settings == tuning.swarm and swarm.seed == tuning.seed and swarm.iteration == k
             and tuple(swarm.lower) == tuple(tuning.lower) and tuple(swarm.upper) == tuple(tuning.upper)
@@ -237,10 +250,10 @@ def _fits(swarm: Swarm, tuning: Tuning, k: int) -> bool:
                     for h in swarm.history))
 
 
-def _last_good_iteration(records, states, tuning: Tuning) -> tuple[int, Swarm | None]:
-    """The largest k such that iterations 0..k-1 each have a record and a
-    swarm state that parse and agree, and the swarm restored from state k-1
-    fits the session's settings (:func:`_fits`)."""
+def _last_good_iteration(records, states, tuning: Tuning) -> tuple[int, object | None]:
+    """The largest k such that iterations 0..k-1 each have a record and an
+    optimiser state that parse and agree, and the optimiser restored from
+    state k-1 fits the session's settings (:func:`_fits`)."""
     k = 0
     parsed = []
     for (_, r), (_, x) in zip(records, states):
@@ -252,7 +265,7 @@ def _last_good_iteration(records, states, tuning: Tuning) -> tuple[int, Swarm | 
     while k:
         state = dict(parsed[k - 1][1], history=[rec for rec, _ in parsed[:k]])
         try:
-            swarm = Swarm.from_state(state)
+            swarm = restore_optimiser(state)
             if (len(swarm.history) == k and all(h.iteration == i for i, h in enumerate(swarm.history))
                     and _fits(swarm, tuning, k)):
                 return k, swarm
@@ -320,12 +333,13 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
         cfg, tuning, swarm, session, stored = r.cfg, r.tuning, r.swarm, r.session, r.result
         directory = resume_dir
         if announce is not None:
-            announce(f"resuming {session.path} at iteration {swarm.iteration} of {tuning.swarm.iterations}"
+            announce(f"resuming {session.path} at iteration {swarm.iteration}, {100 * swarm.progress():.0f} % "
+                     f"of {swarm.name}'s budget"
                      + (" (finished; writing its results)" if stored else ""))
     elif directory is not None:
         session = Session(directory, tuning, cfg, evaluator, replace=replace)
 
-    def each_iteration(sw: Swarm) -> None:
+    def each_iteration(sw) -> None:
         if on_iteration is not None:
             on_iteration(sw)
         if session is not None:
@@ -334,7 +348,8 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
         objective = make_objective(cfg) if make_objective is not None else None
         if stored is not None:
             res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"],
-                             stored.get("scenarios", 0), stored.get("aggregate", ""))
+                             stored.get("scenarios", 0), stored.get("aggregate", ""),
+                             BoundDiagnostics.from_json(stored["bounds"]) if "bounds" in stored else None)
         else:
             res = tune(cfg, tuning, callback=each_iteration, swarm=swarm, objective=objective, batch=batch)
         out = res.as_json()

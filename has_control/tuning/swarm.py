@@ -194,8 +194,17 @@ class Swarm:
 
     # --- ask / tell ---------------------------------------------------------
     @property
+    def name(self) -> str:
+        """The method's name (a key of :data:`VARIANTS`)."""
+        return self.settings.variant
+
+    @property
     def done(self) -> bool:
         return self.stop_reason is not None
+
+    def progress(self) -> float:
+        """Share of the iterations done, 0 .. 1."""
+        return 1.0 if self.done else self.iteration / self.settings.iterations
 
     def ask(self) -> np.ndarray:
         """Positions to evaluate now, (N, M). Raises if the swarm has stopped."""

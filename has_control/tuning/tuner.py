@@ -1,7 +1,9 @@
-"""Tune the ABC gains (k1, k2, k3) with a particle swarm over the batch evaluator.
+"""Tune the ABC gains (k1, k2, k3) over the batch evaluator with a method of
+:mod:`has_control.tuning.methods` (default ``cma-restarts``; the paper's swarms
+``pso``, ``pso-cp``, ``pso-cp-tvac``), and diagnose the bounds of the answer.
 
-Depends inward only: swarm (optimiser) and episode (evaluator). The tuner
-node uses the same :func:`load_tuning` and the same :class:`Swarm`.
+Depends inward only: the optimisers and episode (evaluator). The tuner
+node uses the same :func:`load_tuning` and the same optimisers.
 """
 from __future__ import annotations
 
@@ -21,36 +23,51 @@ from has_control.core.episode import evaluate_configs
 from has_control.common.errors import ConfigError, shown
 from has_control.core.params import Config
 from has_control.core.scenarios import Aggregate, parse_aggregate
-from has_control.tuning.swarm import Swarm, SwarmError, SwarmResult, SwarmSettings, minimize
+from has_control.tuning.bounds import BoundDiagnostics, diagnose
+from has_control.tuning.methods import DEFAULT, check_method, drive, is_swarm, new_optimiser
+from has_control.tuning.restarts import RestartSettings
+from has_control.tuning.swarm import Swarm, SwarmError, SwarmResult, SwarmSettings
 
 TUNER_FILE = default_config_files()[0].parent / "tuner.yaml"
 
 
 @dataclass(frozen=True)
 class Tuning:
-    """A tuning session's settings: the swarm, the search box and the seed,
-    and what a candidate is scored on: the nominal episode, or (robust
-    tuning) the ``aggregate`` of its costs over ``scenarios``."""
+    """A tuning session's settings: the method (``swarm.variant``), the swarm's
+    and ``cma-restarts``' settings, the search box and the seed, and what a
+    candidate is scored on: the nominal episode, or (robust tuning) the
+    ``aggregate`` of its costs over ``scenarios``."""
 
-    swarm: SwarmSettings = SwarmSettings()
+    swarm: SwarmSettings = SwarmSettings(variant=DEFAULT)
     lower: tuple[float, float, float] = (150.0, 150.0, 150.0)
     upper: tuple[float, float, float] = (1200.0, 800.0, 800.0)
     seed: int = 1
     scenarios: tuple[Scenario, ...] = ()
     aggregate: Aggregate = Aggregate()
+    restarts: RestartSettings = RestartSettings()
+
+    @property
+    def method(self) -> str:
+        return self.swarm.variant
 
     @property
     def bounds(self):
         return (np.array(self.lower), np.array(self.upper))
 
     def replace(self, **changes) -> "Tuning":
-        """Override seed, lower, upper or any SwarmSettings field; validated."""
+        """Override seed, lower, upper, any SwarmSettings field (``variant``: the
+        method) or RestartSettings field; validated."""
         top = {k: changes.pop(k) for k in ("seed", "lower", "upper", "scenarios", "aggregate") if k in changes}
-        t = dataclasses.replace(self, swarm=dataclasses.replace(self.swarm, **changes), **top)
-        t.swarm.validate()
+        restart = {k: changes.pop(k) for k in _RESTART_FIELDS if k in changes}
+        t = dataclasses.replace(self, swarm=dataclasses.replace(self.swarm, **changes),
+                                restarts=dataclasses.replace(self.restarts, **restart), **top)
+        check_method(t.swarm.variant)
+        pso = t.swarm if is_swarm(t.swarm.variant) else dataclasses.replace(t.swarm, variant="pso")
+        pso.validate()
+        t.restarts.validate()
         if not is_seed(t.seed):
             raise SwarmError(f"swarm.seed = {shown(t.seed)}: must be a whole number in {SEED_RANGE}", key="seed")
-        Swarm(t.bounds, dataclasses.replace(t.swarm, particles=1, iterations=1), 0)    # bounds check
+        Swarm(t.bounds, dataclasses.replace(pso, particles=1, iterations=1), 0)    # bounds check
         for name in ("lower", "upper"):
             for i, v in enumerate(getattr(t, name)):
                 why = check_gain(v)
@@ -59,22 +76,28 @@ class Tuning:
         return t
 
 
-_INT_KEYS = {"particles", "iterations", "seed"}
-_STR_KEYS = {"variant", "crazy_redraw", "crazy_probability"}
+_INT_KEYS = {"particles", "iterations", "seed", "evaluations", "population", "side_by_side", "window",
+             "polish", "polish_starts"}
+_STR_KEYS = {"variant", "crazy_redraw", "crazy_probability", "scale"}
 _LIST_KEYS = {"lower", "upper"}
+_RESTART_FIELDS = {f.name for f in dataclasses.fields(RestartSettings)}
+PREFIXES = ("swarm.", "restarts.")       # the keys of config/tuner.yaml
 
 
 def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] | None = None,
                            base: Tuning | None = None) -> Tuning:
-    """Validated :class:`Tuning` from flat ``swarm.*`` parameters (others ignored)."""
+    """Validated :class:`Tuning` from flat ``swarm.*`` and ``restarts.*`` parameters (others ignored)."""
     t = base or Tuning()
-    fields = {f.name for f in dataclasses.fields(SwarmSettings)} | {"seed"} | _LIST_KEYS
+    known = {"swarm.": {f.name for f in dataclasses.fields(SwarmSettings)} | {"seed"} | _LIST_KEYS,
+             "restarts.": _RESTART_FIELDS}
     changes: dict[str, Any] = {}
     where: dict[str, str] = {}
     for key, value in flat.items():
-        if not key.startswith("swarm."):
+        prefix = next((p for p in PREFIXES if key.startswith(p)), None)
+        if prefix is None:
             continue
-        name = key[len("swarm."):]
+        name = key[len(prefix):]
+        fields = known[prefix]
         where[name] = (sources or {}).get(key, "parameters")
 
         def bad(why):
@@ -109,15 +132,17 @@ def tuning_from_parameters(flat: Mapping[str, Any], sources: Mapping[str, str] |
 
 
 def tuning_parameters(t: Tuning) -> dict[str, Any]:
-    """Flat ``swarm.*`` parameters of a Tuning (inverse of :func:`tuning_from_parameters`)."""
+    """Flat ``swarm.*`` and ``restarts.*`` parameters of a Tuning (inverse of :func:`tuning_from_parameters`)."""
     out = {f"swarm.{k}": v for k, v in dataclasses.asdict(t.swarm).items()}
     out.update({"swarm.seed": t.seed, "swarm.lower": list(t.lower), "swarm.upper": list(t.upper)})
+    out.update({f"restarts.{k}": v for k, v in dataclasses.asdict(t.restarts).items()})
     return out
 
 
 def tuning_json(t: Tuning) -> dict:
     """A Tuning as JSON-ready data (a session bag's settings; inverse: :func:`tuning_from_json`)."""
-    d = {"swarm": dataclasses.asdict(t.swarm), "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
+    d = {"swarm": dataclasses.asdict(t.swarm), "restarts": dataclasses.asdict(t.restarts),
+         "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
     if t.scenarios:
         d.update(scenarios=[s.as_json() for s in t.scenarios], aggregate=str(t.aggregate))
     return d
@@ -130,9 +155,10 @@ def tuning_from_json(d: dict, where: str = "tuning settings", cfg: Config | None
     (:func:`~has_control.config.check_scenarios`, over ``cfg``), the
     aggregate as ``--aggregate``'s. One ConfigError line naming ``where``."""
     keys = {"swarm", "lower", "upper", "seed"}
-    if not isinstance(d, dict) or not keys <= set(d) or not isinstance(d["swarm"], dict):
-        raise ConfigError(f"{where}: expected an object with {', '.join(sorted(keys))}")
-    extra = sorted(set(d) - keys - {"scenarios", "aggregate"})
+    if (not isinstance(d, dict) or not keys <= set(d) or not isinstance(d["swarm"], dict)
+            or not isinstance(d.get("restarts", {}), dict)):
+        raise ConfigError(f"{where}: expected an object with {', '.join(sorted(keys))} (and restarts)")
+    extra = sorted(set(d) - keys - {"scenarios", "aggregate", "restarts"})
     if extra:
         raise ConfigError(f"{where}: {shown(extra[0])}: unknown key")
     if ("aggregate" in d) != ("scenarios" in d):
@@ -141,6 +167,7 @@ def tuning_from_json(d: dict, where: str = "tuning settings", cfg: Config | None
     if missing:
         raise ConfigError(f"{where}: swarm.{missing[0]}: missing")
     flat = {f"swarm.{k}": v for k, v in d["swarm"].items()}
+    flat.update({f"restarts.{k}": v for k, v in d.get("restarts", {}).items()})    # none: the defaults
     flat.update({"swarm.lower": d["lower"], "swarm.upper": d["upper"], "swarm.seed": d["seed"]})
     t = tuning_from_parameters(flat, {k: where for k in flat})
     if "scenarios" not in d:
@@ -182,14 +209,16 @@ def load_tuning(paths: Iterable[str | Path] = (), defaults: bool = True) -> Tuni
 
 @dataclass
 class TuneResult:
-    """A finished tuning session: the swarm's result plus what it took."""
+    """A finished tuning session: the optimiser's result, what it took, and
+    the bound diagnostics of the answer (their probes are not in ``result.nfev``)."""
 
-    variant: str
+    variant: str                    # the method
     seed: int
     result: SwarmResult
     seconds: float
     scenarios: int = 0              # robust tuning: J is the aggregate over this many scenarios
     aggregate: str = ""
+    bounds: BoundDiagnostics | None = None
 
     @property
     def gains(self) -> tuple[float, float, float]:
@@ -202,16 +231,37 @@ class TuneResult:
                 "J": to_json(self.result.fun), "iterations": self.result.nit,
                 "evaluations": self.result.nfev, "seconds": self.seconds,
                 "history": [to_json(h.best_cost) for h in self.result.history],
+                **({"bounds": self.bounds.as_json()} if self.bounds is not None else {}),
                 **({"scenarios": self.scenarios, "aggregate": self.aggregate,
                     "episodes": self.result.nfev * self.scenarios} if self.scenarios else {})}
 
 
+def make_objective(cfg: Config, tuning: Tuning,
+                   batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> Callable[[np.ndarray], np.ndarray]:
+    """What a tuning session minimises: (P, 3) gains -> P costs J on ``cfg``'s
+    nominal episode, or (robust tuning) the aggregate of J over ``tuning.scenarios``;
+    ``batch``: the batch evaluator (default :func:`~has_control.core.episode.evaluate_configs`)."""
+    run = batch or evaluate_configs
+    if tuning.scenarios:
+        configs = scenario_configs(cfg, tuning.scenarios)
+
+        def objective(k):
+            return tuning.aggregate(run(k, configs)[:, :, 0])
+    else:
+        def objective(k):
+            return run(k, [cfg])[:, 0, 0]
+    return objective
+
+
 def tune(cfg: Config | None = None, tuning: Tuning | None = None,
-         callback: Callable[[Swarm], bool | None] | None = None,
-         swarm: Swarm | None = None,
+         callback: Callable[[Any], bool | None] | None = None,
+         swarm=None,
          objective: Callable[[np.ndarray], np.ndarray] | None = None,
-         batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> TuneResult:
-    """Run one tuning session (``swarm`` to resume one).
+         batch: Callable[[np.ndarray, list], np.ndarray] | None = None,
+         diagnostics: bool = True) -> TuneResult:
+    """Run one tuning session with ``tuning.method`` (``swarm``: an optimiser
+    of :mod:`~has_control.tuning.methods` to resume), then (``diagnostics``)
+    probe the bounds of its answer with the same objective.
 
     ``objective`` maps the (N, 3) candidate gains to N costs J; by default
     the batch evaluator over ``cfg`` (robust tuning: the aggregate of the
@@ -224,18 +274,14 @@ def tune(cfg: Config | None = None, tuning: Tuning | None = None,
     cfg = cfg or Config()
     tuning = tuning or Tuning()
     if swarm is None:
-        swarm = Swarm(tuning.bounds, tuning.swarm, tuning.seed)
+        swarm = new_optimiser(tuning.method, tuning.bounds, tuning.swarm, tuning.restarts, tuning.seed)
     if objective is None:
-        run = batch or evaluate_configs
-        if tuning.scenarios:
-            configs = scenario_configs(cfg, tuning.scenarios)
-
-            def objective(k):
-                return tuning.aggregate(run(k, configs)[:, :, 0])
-        else:
-            def objective(k):
-                return run(k, [cfg])[:, 0, 0]
+        objective = make_objective(cfg, tuning, batch)
     t0 = time.perf_counter()
-    result = minimize(objective, None, swarm=swarm, callback=callback)
-    return TuneResult(swarm.settings.variant, swarm.seed, result, time.perf_counter() - t0,
-                      len(tuning.scenarios), str(tuning.aggregate) if tuning.scenarios else "")
+    result = drive(swarm, objective, callback)
+    seconds = time.perf_counter() - t0
+    bounds = None
+    if diagnostics and result.success:
+        bounds = diagnose(objective, result.x, result.fun, swarm.lower, swarm.upper)
+    return TuneResult(swarm.name, swarm.seed, result, seconds,
+                      len(tuning.scenarios), str(tuning.aggregate) if tuning.scenarios else "", bounds)

@@ -1,0 +1,116 @@
+"""``has-control landscape``: the tuning objective J over 2-D slices of the gain
+space through a point, as heatmaps with the box's bound and the local minima
+marked (nominal, or robust with --scenarios/--aggregate)."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from contextlib import nullcontext
+
+from has_control.common.errors import HasControlError
+from has_control.config import check_gain, finite_number, load_config, load_scenarios, with_horizon
+from has_control.core.params import PAPER_TUNED_GAINS
+from has_control.core.scenarios import parse_aggregate
+from has_control.tuning.landscape import NAMES, slices
+from has_control.tuning.tuner import load_tuning, make_objective
+
+MAX_POINTS = 300                 # a side of a slice's grid: 3 x 300^2 = 270 000 episodes at most
+
+
+def _side(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number") from None
+    if not 3 <= n <= MAX_POINTS:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be 3 .. {MAX_POINTS}")
+    return n
+
+
+def _fraction(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
+    if not (math.isfinite(v) and 0.0 <= v <= 10.0):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be 0 .. 10 (a fraction of the range)")
+    return v
+
+
+HELP = "J over 2-D slices of the gain space: heatmaps, bound and minima marked"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from has_control.cli.main import _dask_spec, _figure_path     # lazy: main imports this module
+    p.add_argument("--point", nargs=3, metavar=("K1", "K2", "K3"),
+                   help="the slices pass through these gains [1/s] (default: the paper's tuned 656.11 656.13 656.14)")
+    p.add_argument("--points", type=_side, default=40, metavar="N", help="grid points per side (default 40)")
+    p.add_argument("--beyond", type=_fraction, default=0.25, metavar="F",
+                   help="extend each slice past the upper bound by F x the range (default 0.25)")
+    p.add_argument("--config", action="append", metavar="FILE",
+                   help="ros__parameters YAML (episode, swarm.lower/upper: the box; repeatable)")
+    p.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
+    p.add_argument("--scenarios", metavar="FILE", help="robust objective: every scenario of this YAML file")
+    p.add_argument("--aggregate", metavar="HOW", help="with --scenarios: mean (default), max or cvar:ALPHA")
+    p.add_argument("--dask", type=_dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
+    p.add_argument("--plot", type=_figure_path, metavar="FILE.png", help="write the heatmaps")
+    p.add_argument("--json", action="store_true", help="print one JSON object (the grids too)")
+
+
+def _point(values) -> tuple[float, float, float]:
+    out = []
+    for name, v in zip(("K1", "K2", "K3"), values):
+        try:
+            x = finite_number(float(v))
+        except ValueError:
+            x = "expected a number"
+        why = x if isinstance(x, str) else check_gain(x)
+        if why:
+            raise HasControlError(f"--point: {name} = {v!r}: {why}")
+        out.append(x)
+    return tuple(out)
+
+
+def run(args) -> int:
+    cfg = with_horizon(load_config(args.config or []), args.duration)
+    tuning = load_tuning(args.config or [])
+    if args.aggregate and not args.scenarios:
+        raise HasControlError(f"--aggregate {args.aggregate}: needs --scenarios FILE")
+    if args.scenarios:
+        tuning = tuning.replace(scenarios=load_scenarios(args.scenarios, cfg),
+                                aggregate=parse_aggregate(args.aggregate or "mean"))
+    point = _point(args.point) if args.point else PAPER_TUNED_GAINS.as_tuple()
+    if args.dask:
+        from has_control.tuning.dask_evaluator import dask_batch      # lazy: Dask takes a second to load
+        context = dask_batch(args.dask)
+    else:
+        context = nullcontext(None)
+    with context as batch:
+        grid = slices(make_objective(cfg, tuning, batch), point, tuning.lower, tuning.upper,
+                      points=args.points, beyond=args.beyond)
+    objective = (f"{tuning.aggregate} of J over {len(tuning.scenarios)} scenarios" if tuning.scenarios
+                 else "J, nominal model")
+    if args.plot:
+        from has_control.plots.landscape import plot_landscape       # lazy: matplotlib takes a second to load
+        plot_landscape(grid, args.plot, f"{objective}, {cfg.episode.horizon:g} s episodes, through "
+                                        f"k = ({point[0]:g}, {point[1]:g}, {point[2]:g})")
+    if args.json:
+        print(json.dumps({"objective": objective, "point": list(point), "points": args.points,
+                          "episodes": 3 * args.points ** 2 * max(1, len(tuning.scenarios)),
+                          "slices": [s.as_json() for s in grid]}))
+        return 0
+    print(f"{objective}, {cfg.episode.horizon:g} s episodes: slices through k = ({point[0]:g}, {point[1]:g}, "
+          f"{point[2]:g}), {args.points} x {args.points} points each, to {args.beyond:g} x the range past the bound")
+    for s in grid:
+        i, j = s.axes
+        bi, bj, bJ = s.best()
+        ii, ij, iJ = s.best_inside()
+        minima = s.minima()
+        print(f"  {s.label()}: {len(minima)} local minim{'um' if len(minima) == 1 else 'a'}; lowest J "
+              f"{bJ:.6e} at {NAMES[i]} = {bi:.1f}, {NAMES[j]} = {bj:.1f}"
+              + ("" if (ii, ij) == (bi, bj) else
+                 f" (outside the box; in the box {iJ:.6e} at {NAMES[i]} = {ii:.1f}, {NAMES[j]} = {ij:.1f})"))
+    if args.plot:
+        print(f"wrote {args.plot}")
+    return 0
