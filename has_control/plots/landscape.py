@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from has_control.plots.figures import _save, plt
+from has_control.plots.style import label, plt, save, styled
 
 NAMES = ("k1", "k2", "k3")
 
@@ -17,6 +17,12 @@ def plot_landscape(slices: Sequence, path: str | Path, title: str = "") -> Path:
     """One panel per slice (a :class:`has_control.tuning.landscape.Slice`):
     log10(J / J_best) as colour, the box's upper bounds dashed, local minima
     (o, the best filled), the point (*) and, beyond the box, the slice's best (x)."""
+    with styled():
+        fig = _draw(slices, title)
+    return save(fig, path)
+
+
+def _draw(slices: Sequence, title: str):
     fig, axes = plt.subplots(1, len(slices), figsize=(4.2 * len(slices), 3.9), squeeze=False)
     for ax, s in zip(axes[0], slices):
         i, j = s.axes
@@ -38,12 +44,12 @@ def plot_landscape(slices: Sequence, path: str | Path, title: str = "") -> Path:
         if not (s.lower[0] <= bi <= s.upper[0] and s.lower[1] <= bj <= s.upper[1]):
             ax.plot([bj], [bi], "x", color="r", ms=9, mew=2, label="lowest J: outside the box")
         k = 3 - i - j
-        ax.set_xlabel(f"{NAMES[j]} [1/s]")
-        ax.set_ylabel(f"{NAMES[i]} [1/s]")
+        ax.set_xlabel(label(NAMES[j], "1/s"))
+        ax.set_ylabel(label(NAMES[i], "1/s"))
         ax.set_title(f"{NAMES[k]} = {s.point[k]:.1f}", fontsize=9)
-        fig.colorbar(mesh, ax=ax, label="log10(J / J_min of the slice)")
+        fig.colorbar(mesh, ax=ax, label=label("log10(J / J_min of the slice)", "1"))
     axes[0][0].legend(loc="lower right", fontsize=7, framealpha=0.6)
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return fig
