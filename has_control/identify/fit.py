@@ -330,7 +330,7 @@ def identify(experiments: list[Experiment], estimate=DEFAULT_KEYS, bounds: dict 
         v, se = fit["values"][i], fit["se"][i]
         reason = _unidentifiable(k, v, se, fit["at_bound"][i], bnds[k])
         if reason:
-            estimates[k] = Estimate(k, priors[k], se, v - Z95 * se, v + Z95 * se, "not identifiable",
+            estimates[k] = Estimate(k, priors[k], math.nan, math.nan, math.nan, "not identifiable",
                                     priors[k], ee.get(k, math.nan), reason)
             continue
         half = Z95 * se

@@ -13,7 +13,9 @@ at most every 5 s): it never reaches the estimates.
 Parameters: ``gains.k1..k3`` [1/s] (> 0), ``adaptation.*``, ``reference.*``,
 the model ``actuator.*``, ``simulation.step`` and ``noise.*``: the seeded
 measurement noise the law reads on top of each state it receives (the state
-topic carries the plant's true state, which the trace and a bag keep). A parameter set that the
+topic carries the plant's true state, which the trace and a bag keep); with
+``noise.added_by: plant`` the states arrive as the plant's sensors read them
+and the law adds nothing. A parameter set that the
 core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
 and the old values stay; accepted changes apply from the next sample (a
 new road from the first sample after its table is built, off the executor).
