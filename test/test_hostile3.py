@@ -142,7 +142,8 @@ def test_an_address_that_is_not_a_scheduler_is_one_line(behaviour, capsys):
     old = signal.signal(signal.SIGALRM, lambda *a: pytest.fail("hangs"))
     signal.alarm(60)                                       # a hang guard, not a timing
     try:
-        one_line(capsys, ["tune", "--particles", "2", "--iterations", "1", "--duration", "1.2",
+        one_line(capsys, ["tune", "--variant", "pso-cp-tvac",
+                          "--particles", "2", "--iterations", "1", "--duration", "1.2",
                           "--dask", f"tcp://127.0.0.1:{port}"], f"tcp://127.0.0.1:{port}", "scheduler")
     finally:
         signal.alarm(0)
@@ -183,8 +184,8 @@ def test_ctrl_c_at_the_terminal_while_dask_gathers_is_one_line(tmp_path):
 # --- 10, 11: signals ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("argv, delay", [
-    (["tune", "--particles", "40", "--iterations", "100"], 0.3),         # while loading
-    (["tune", "--particles", "40", "--iterations", "100"], 6.0),         # while tuning
+    (["tune", "--variant", "pso-cp-tvac", "--particles", "40", "--iterations", "100"], 0.3),         # while loading
+    (["tune", "--variant", "pso-cp-tvac", "--particles", "40", "--iterations", "100"], 6.0),         # while tuning
 ])
 def test_sigterm_is_one_line_and_130(argv, delay):
     rc, err = _signalled(argv, signal.SIGTERM, delay)
@@ -193,7 +194,8 @@ def test_sigterm_is_one_line_and_130(argv, delay):
 
 def test_sigterm_leaves_a_session_that_resumes(tmp_path):
     out = tmp_path / "t"
-    rc, err = _signalled(["tune", "--particles", "80", "--iterations", "100", "--out", out], signal.SIGTERM, 1.0,
+    rc, err = _signalled(["tune", "--variant", "pso-cp-tvac",
+                          "--particles", "80", "--iterations", "100", "--out", out], signal.SIGTERM, 1.0,
                          ready=lambda: any(out.glob("session/*.mcap")))
     assert rc == 130, err
     from has_control.tuning.session import SESSION, restore
@@ -489,7 +491,8 @@ def test_stored_iterations_that_do_not_fit_the_session_are_damaged_ones(session3
 def test_a_stored_result_without_its_keys_is_not_used(tmp_path, capsys):
     from has_control.tuning.session import RESULT, RESULT_FILE
     done = tmp_path / "done"
-    assert main(["tune", "--particles", "2", "--iterations", "2", "--duration", "1.2", "--out", str(done)]) == 0
+    assert main(["tune", "--variant", "pso-cp-tvac",
+                 "--particles", "2", "--iterations", "2", "--duration", "1.2", "--out", str(done)]) == 0
     (done / RESULT_FILE).unlink()
     d = _rewrite(done, tmp_path / "s", RESULT, 0, lambda r: {}, copy=True)
     capsys.readouterr()

@@ -235,7 +235,8 @@ def test_a_bag_from_another_recorder_plots_on_its_own_grid(recorded, tmp_path):
 
 def test_a_tuner_sessions_validation_bag_and_the_tune_figures(tmp_path):
     out = tmp_path / "tuned"
-    r = cli("tune", "--particles", "4", "--iterations", "2", "--duration", HORIZON, "--out", out, "--json")
+    r = cli("tune", "--variant", "pso-cp-tvac",
+            "--particles", "4", "--iterations", "2", "--duration", HORIZON, "--out", out, "--json")
     assert r.returncode == 0, r.stderr
     for fig in ("convergence.png", "gains.png", "tracking.png"):
         assert (out / fig).read_bytes()[:4] == b"\x89PNG"

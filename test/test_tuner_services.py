@@ -29,7 +29,7 @@ def _spin_until(ex, cond, seconds):
 
 
 def test_the_batch_evaluator_needs_no_plant_or_controller(context):
-    cfg, tuner = _tuner(context, iterations=2, particles=3)
+    cfg, tuner = _tuner(context, variant="pso-cp-tvac", iterations=2, particles=3)
     ex = EventsExecutor(context=context)
     ex.add_node(tuner)
     try:
@@ -38,7 +38,7 @@ def test_the_batch_evaluator_needs_no_plant_or_controller(context):
     finally:
         ex.shutdown()
         tuner.destroy_node()
-    ref = tune(cfg, load_tuning().replace(iterations=2, particles=3))
+    ref = tune(cfg, load_tuning().replace(variant="pso-cp-tvac", iterations=2, particles=3))
     assert tuner.error is None and tuner.result["gains"] == list(ref.gains)
     assert tuner.result["validation"]["J"] == ref.result.fun          # validated in-process
     assert tuner.result["controller_gains"] is None and tuner.result["lanes"] == []
@@ -46,7 +46,7 @@ def test_the_batch_evaluator_needs_no_plant_or_controller(context):
 
 
 def test_start_cancel_and_status_through_services(context):
-    _, tuner = _tuner(context, iterations=100000, particles=3)
+    _, tuner = _tuner(context, variant="pso-cp-tvac", iterations=100000, particles=3)
     client = rclpy.create_node("operator", context=context)
     ex = EventsExecutor(context=context)
     for n in (tuner, client):

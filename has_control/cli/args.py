@@ -23,8 +23,8 @@ class Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
 
 
-def gains_arg(values) -> tuple[float, float, float]:
-    """--gains K1 K2 K3 [1/s], checked as the config checks gains.k1..k3."""
+def gains_arg(values, option: str = "--gains") -> tuple[float, float, float]:
+    """``option`` K1 K2 K3 [1/s], checked as the config checks gains.k1..k3."""
     out = []
     for name, v in zip(("K1", "K2", "K3"), values):
         try:
@@ -33,7 +33,7 @@ def gains_arg(values) -> tuple[float, float, float]:
             x = "expected a number"
         why = x if isinstance(x, str) else check_gain(x)
         if why:
-            raise HasControlError(f"--gains: {name} = {v!r}: {why}")
+            raise HasControlError(f"{option}: {name} = {v!r}: {why}")
         out.append(x)
     return tuple(out)
 

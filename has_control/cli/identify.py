@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from pathlib import Path
 
+from has_control.cli.args import add_config, add_json, check_outputs, figure_path
 from has_control.common.errors import HasControlError
 
 
@@ -18,8 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimate", nargs="+", metavar="KEY",
                    help="plant parameters to estimate (default: mass damping bulk_modulus leakage valve_gain "
                         "valve_time_constant; also supply_pressure)")
-    p.add_argument("--config", action="append", metavar="FILE",
-                   help="ros__parameters YAML overriding the parameters stored in the bags (repeatable)")
+    add_config(p, "ros__parameters YAML overriding the parameters stored in the bags (repeatable)")
     p.add_argument("--bound", nargs=3, action="append", metavar=("KEY", "LOWER", "UPPER"),
                    help="bounds of an estimated parameter [SI] (default: a factor 4 around the model's value)")
     p.add_argument("--tolerance", type=float, default=0.02, metavar="R",
@@ -28,8 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="residual evaluations per least-squares pass before giving up (default 200)")
     p.add_argument("--out", metavar="FILE.yaml", help="write the identified plant as a --params-file")
     p.add_argument("--validate", metavar="BAG", help="simulate the identified plant against this held-out run")
-    p.add_argument("--plot", metavar="FILE.png", help="with --validate: measured against simulated states")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--plot", type=figure_path, metavar="FILE.png",
+                   help="with --validate: measured against simulated states")
+    add_json(p)
     p.set_defaults(func=run)
 
 
@@ -38,11 +38,7 @@ def run(args) -> int:
     from has_control.identify import identify_bags
     if args.plot and not args.validate:
         raise HasControlError("--plot: needs --validate BAG (it shows the held-out run)")
-    if args.plot:
-        from has_control.plots.figures import figure_format  # lazy: matplotlib, only for --plot
-        figure_format(args.plot)
-    if args.out and Path(args.out).is_dir():
-        raise HasControlError(f"--out {args.out}: is a directory; expected a .yaml file")
+    check_outputs(args, files=("out", "plot"))
     if args.max_evaluations < 1:
         raise HasControlError(f"--max-evaluations {args.max_evaluations}: must be >= 1")
     if not (0 < args.tolerance < 1):

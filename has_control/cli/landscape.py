@@ -6,14 +6,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from contextlib import nullcontext
 
-from has_control.common.errors import HasControlError
-from has_control.config import check_gain, finite_number, load_config, load_scenarios, with_horizon
+from has_control.cli.args import (add_config, add_duration, add_json, batch, check_outputs, dask_spec, figure_path,
+                                  gains_arg, load)
 from has_control.core.params import PAPER_TUNED_GAINS
-from has_control.core.scenarios import parse_aggregate
 from has_control.tuning.landscape import NAMES, slices
-from has_control.tuning.tuner import load_tuning, make_objective
+from has_control.tuning.tuner import load_tuning, make_objective, robust_tuning
 
 MAX_POINTS = 300                 # a side of a slice's grid: 3 x 300^2 = 270 000 episodes at most
 
@@ -42,52 +40,27 @@ HELP = "J over 2-D slices of the gain space: heatmaps, bound and minima marked"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from has_control.cli.main import _dask_spec, _figure_path     # lazy: main imports this module
     p.add_argument("--point", nargs=3, metavar=("K1", "K2", "K3"),
                    help="the slices pass through these gains [1/s] (default: the paper's tuned 656.11 656.13 656.14)")
     p.add_argument("--points", type=_side, default=40, metavar="N", help="grid points per side (default 40)")
     p.add_argument("--beyond", type=_fraction, default=0.25, metavar="F",
                    help="extend each slice past the upper bound by F x the range (default 0.25)")
-    p.add_argument("--config", action="append", metavar="FILE",
-                   help="ros__parameters YAML (episode, swarm.lower/upper: the box; repeatable)")
-    p.add_argument("--duration", type=float, metavar="S", help="episode horizon [s] (default 10)")
+    add_config(p, "ros__parameters YAML (episode, swarm.lower/upper: the box; repeatable)")
+    add_duration(p)
     p.add_argument("--scenarios", metavar="FILE", help="robust objective: every scenario of this YAML file")
     p.add_argument("--aggregate", metavar="HOW", help="with --scenarios: mean (default), max or cvar:ALPHA")
-    p.add_argument("--dask", type=_dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
-    p.add_argument("--plot", type=_figure_path, metavar="FILE.png", help="write the heatmaps")
-    p.add_argument("--json", action="store_true", help="print one JSON object (the grids too)")
-
-
-def _point(values) -> tuple[float, float, float]:
-    out = []
-    for name, v in zip(("K1", "K2", "K3"), values):
-        try:
-            x = finite_number(float(v))
-        except ValueError:
-            x = "expected a number"
-        why = x if isinstance(x, str) else check_gain(x)
-        if why:
-            raise HasControlError(f"--point: {name} = {v!r}: {why}")
-        out.append(x)
-    return tuple(out)
+    p.add_argument("--dask", type=dask_spec, metavar="SPEC", help="evaluate on a Dask cluster (see tune)")
+    p.add_argument("--plot", type=figure_path, metavar="FILE.png", help="write the heatmaps")
+    add_json(p, "print one JSON object (the grids too)")
 
 
 def run(args) -> int:
-    cfg = with_horizon(load_config(args.config or []), args.duration)
-    tuning = load_tuning(args.config or [])
-    if args.aggregate and not args.scenarios:
-        raise HasControlError(f"--aggregate {args.aggregate}: needs --scenarios FILE")
-    if args.scenarios:
-        tuning = tuning.replace(scenarios=load_scenarios(args.scenarios, cfg),
-                                aggregate=parse_aggregate(args.aggregate or "mean"))
-    point = _point(args.point) if args.point else PAPER_TUNED_GAINS.as_tuple()
-    if args.dask:
-        from has_control.tuning.dask_evaluator import dask_batch      # lazy: Dask takes a second to load
-        context = dask_batch(args.dask)
-    else:
-        context = nullcontext(None)
-    with context as batch:
-        grid = slices(make_objective(cfg, tuning, batch), point, tuning.lower, tuning.upper,
+    check_outputs(args, files=("plot",))
+    cfg = load(args)
+    tuning = robust_tuning(load_tuning(args.config or []), cfg, args.scenarios, args.aggregate)
+    point = gains_arg(args.point, "--point") if args.point else PAPER_TUNED_GAINS.as_tuple()
+    with batch(args) as evaluator:
+        grid = slices(make_objective(cfg, tuning, evaluator), point, tuning.lower, tuning.upper,
                       points=args.points, beyond=args.beyond)
     objective = (f"{tuning.aggregate} of J over {len(tuning.scenarios)} scenarios" if tuning.scenarios
                  else "J, nominal model")

@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 from has_control.common.errors import HasControlError
+from has_control.common.files import check_output
 
 HELP = "recorded runs (bags) as one figure: position, error, valve, pressures, estimates, gains"
 
@@ -65,6 +66,10 @@ def run(args) -> int:
     if len(labels) > len(args.bags):
         raise HasControlError(f"--label {labels[len(args.bags)]}: more labels than bags")
     out = Path(args.out) if args.out else default_out(args.bags[0])
+    try:
+        check_output(out, "file")
+    except HasControlError as exc:
+        raise HasControlError(f"--out: {exc}") from None
     series = [run_series(b, args.config or []) for b in args.bags]
     names = _names(args.bags, series, gains_text)
     views = [view_of_series(s, labels[i] if i < len(labels) else names[i]) for i, s in enumerate(series)]
