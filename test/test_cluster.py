@@ -346,7 +346,7 @@ def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
     from has_control.cli import main
     from has_control.config import CONFIG_DIR
     args = ["tune", "--scenarios", str(CONFIG_DIR / "scenarios.yaml"), "--aggregate", "cvar:0.2",
-            "--particles", "16", "--iterations", "3", "--duration", "1.2", "--json"]
+            "--variant", "pso-cp-tvac", "--particles", "16", "--iterations", "3", "--duration", "1.2", "--json"]
     outs = []
     for extra in ([], ["--dask", "local:2"]):
         assert main(args + extra) == 0

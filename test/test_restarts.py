@@ -193,12 +193,17 @@ def test_diagnose_is_quiet_inside_and_where_J_rises_outward():
     assert not c.falls and c.slope > 0 and d.warnings == []
 
 
-def test_the_tuner_node_runs_cma_restarts_as_the_library_does(domain_id):
+def test_the_tuner_node_runs_cma_restarts_as_the_library_does_and_warns(domain_id, tmp_path):
     from has_control.nodes.stack import run_tuning_stack
     from has_control.tuning.tuner import load_tuning
-    out = run_tuning_stack(SHORT, {"evaluations": 300}, validate_best=False, domain_id=domain_id)
-    ref = tune(SHORT, load_tuning().replace(evaluations=300))
+    box = tmp_path / "box.yaml"
+    box.write_text("/**:\n  ros__parameters:\n    swarm:\n      lower: [800.0, 150.0, 150.0]\n"
+                   "      upper: [1200.0, 400.0, 400.0]\n")
+    cfg = Config()
+    out = run_tuning_stack(cfg, {"evaluations": 700}, config_files=[box], validate_best=False, domain_id=domain_id)
+    ref = tune(cfg, load_tuning([box]).replace(evaluations=700))
     assert out["variant"] == ref.variant == "cma-restarts"
     assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun
     assert out["history"] == [h.best_cost for h in ref.result.history]
     assert out["bounds"] == ref.as_json()["bounds"]
+    assert any(w.startswith("k1 = 1200 is the upper bound") for w in out["bounds"]["warnings"])

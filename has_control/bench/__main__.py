@@ -94,9 +94,10 @@ def main(argv=None) -> int:
           f"{r['paper_experiment_seconds_estimate']:.1f} s")
     if args.evaluator:
         return 0
-    o = bench_optimiser()
-    print(f"optimiser overhead: {100 * o['optimiser_share']:.2f} % of a {o['iterations']}-iteration "
-          f"tuning run ({o['seconds']:.1f} s) is spent outside the evaluator")
+    for method in ("pso-cp-tvac", "cma-restarts"):
+        o = bench_optimiser(method=method)
+        print(f"optimiser overhead: {100 * o['optimiser_share']:.2f} % of a {o['iterations']}-iteration "
+              f"{o['method']} tuning run ({o['seconds']:.1f} s) is spent outside the evaluator")
     print(f"scoring a 10 s bag (33,333 samples, 5 topics): {bench_scoring():.3f} s")
     print_graph(bench_graph(repeats=args.repeats))
     return 0

@@ -401,8 +401,11 @@ class TunerNode(Node):
                               announce=log.info, on_warning=log.warning)
             res, out, best = run.result, dict(run.out), run.result.gains
             if res.bounds is not None:
-                for line in res.bounds.lines():
-                    (log.warning if line.startswith("warning") else log.info)(line)
+                for line in res.bounds.lines():        # one call site per severity (rclpy's rule)
+                    if line.startswith("warning"):
+                        log.warning(line)
+                    else:
+                        log.info(line)
             out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes] if lanes_up() else [])
             if not lanes_up():
                 if validate:

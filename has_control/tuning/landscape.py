@@ -3,7 +3,8 @@
 
 A slice varies two gains over a grid, from the box's lower bound to its upper
 bound extended by ``beyond`` (a fraction of the range, so that the cost past
-the bound shows), the third gain held at the point's value. Every slice's grid
+the bound shows; the bound itself is a grid value), the third gain held at the
+point's value. Every slice's grid
 goes to the objective in one batch. Local minima are the grid points lower
 than their (up to) eight neighbours.
 """
@@ -83,7 +84,7 @@ def slices(objective: Callable[[np.ndarray], np.ndarray], point: Sequence[float]
     top = np.minimum(hi + beyond * (hi - lo), GAIN_MAX)
     grids, blocks = [], []
     for i, j in pairs:
-        xi, xj = np.linspace(lo[i], top[i], points), np.linspace(lo[j], top[j], points)
+        xi, xj = _axis(lo[i], hi[i], top[i], points), _axis(lo[j], hi[j], top[j], points)
         k = np.repeat(p[None, :], points * points, axis=0)
         k[:, i] = np.repeat(xi, points)
         k[:, j] = np.tile(xj, points)
@@ -97,6 +98,14 @@ def slices(objective: Callable[[np.ndarray], np.ndarray], point: Sequence[float]
         out.append(Slice((i, j), tuple(float(v) for v in p), xi, xj, J, (float(lo[i]), float(lo[j])),
                          (float(hi[i]), float(hi[j]))))
     return out
+
+
+def _axis(lo: float, hi: float, top: float, points: int) -> np.ndarray:
+    """``points`` equally spaced values from ``lo`` to about ``top``, the bound ``hi`` one of them."""
+    steps = max(1, round((points - 1) * (hi - lo) / (top - lo)))
+    x = lo + (hi - lo) / steps * np.arange(points)
+    x[steps] = hi
+    return np.minimum(x, GAIN_MAX)
 
 
 __all__ = ["Slice", "slices", "PAIRS"]
