@@ -53,6 +53,7 @@ answered, late (answers that took longer than one step Δt to compute),
 malformed, conflicts and whether â1, â2 are within ``adaptation.lower..upper``.
 """
 
+import gc
 import math
 import time
 
@@ -374,7 +375,10 @@ class ControllerNode(LifecycleNode):
 
     # --- diagnostics -----------------------------------------------------------
     def _diagnose(self) -> None:
-        """/diagnostics: "<node>: control law" with the counts and the estimates' bounds."""
+        """/diagnostics: "<node>: control law" with the counts and the estimates' bounds
+        (and, in a controller process with the collector off, the young generations' cycles)."""
+        if not gc.isenabled():
+            gc.collect(1)
         cp = self.cfg.adaptation
         a = (self.a1_hat, self.a2_hat)
         in_bounds = all(lo <= v <= hi for v, lo, hi in zip(a, cp.lower, cp.upper))
@@ -395,4 +399,11 @@ class ControllerNode(LifecycleNode):
 
 
 def main(args=None):
-    node_main(args, ControllerNode, lambda executor, node: spin(executor))
+    node_main(args, ControllerNode, _serve)
+
+
+def _serve(executor, node: ControllerNode) -> None:
+    """A controller process: no collector pause between a state and its answer
+    (the once-a-second diagnostics collect instead), then serve until shutdown."""
+    gc.disable()
+    spin(executor)

@@ -293,9 +293,10 @@ class PlantNode(LifecycleNode):
         return bool(self.state_pub.get_subscription_count() and self._command_sub.get_publisher_count())
 
     def publish_state(self) -> None:
-        """Write: the clock and state of the current sample."""
-        self._publish_clock(bytes(self._clock_msg))
+        """Write: the state of the current sample, then its clock (the state first: it is
+        what the controller waits on; the clock's publish no longer delays it)."""
         self._publish_state(bytes(self._state_msg))
+        self._publish_clock(bytes(self._clock_msg))
         self._last_publish = time.monotonic()
         self._published = True
 
