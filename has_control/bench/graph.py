@@ -158,8 +158,20 @@ class _BarePlant:
         return self.node.get_logger()
 
 
-def bare_paced(samples: int, domain: int, priority: int = 50, warm_up: int = 200) -> dict:
-    """The bare paced cross-process loop: missed samples, fail-safe samples, lateness."""
+def bare_paced(samples: int, domain: int) -> dict:
+    """The bare paced cross-process loop, both sides fresh processes as the stack's
+    plant and controller are: missed samples, fail-safe samples, lateness."""
+    import json
+    r = subprocess.run([sys.executable, "-m", "has_control.bench.graph", "--bare-paced", str(samples)],
+                       env=_env(domain), capture_output=True, text=True, timeout=600)
+    try:
+        return json.loads(r.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        return {"error": (r.stdout + r.stderr)[-400:]}
+
+
+def _bare_paced_here(samples: int, domain: int | None, priority: int = 50, warm_up: int = 200) -> dict:
+    """The plant's side of :func:`bare_paced`, in this process (its echo in another)."""
     import gc
 
     import rclpy
@@ -170,7 +182,8 @@ def bare_paced(samples: int, domain: int, priority: int = 50, warm_up: int = 200
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
     echo = subprocess.Popen([sys.executable, "-m", "has_control.bench.graph", "--stamp-echo"],
-                            env=_env(domain), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                            env=os.environ if domain is None else _env(domain),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         node = rclpy.create_node("bare_paced_plant", context=ctx)
         plant = _BarePlant(node, samples, step_ns)
@@ -203,6 +216,8 @@ def bare_paced(samples: int, domain: int, priority: int = 50, warm_up: int = 200
 
 def _stamp_echo_main() -> None:
     """The bare loop's other process: answer each state with a command stamped like it, as bytes."""
+    import gc
+
     import rclpy
     from rclpy.experimental import EventsExecutor
     from sensor_msgs.msg import JointState
@@ -220,6 +235,8 @@ def _stamp_echo_main() -> None:
         node.create_subscription(JointState, STATE, answer, CONTROL_QOS, raw=True)
         ex = EventsExecutor()
         ex.add_node(node)
+        gc.freeze()                           # as a controller process: no collector pause in the loop
+        gc.disable()
         spin(ex)
 
 
@@ -410,7 +427,10 @@ def _echo_main() -> None:
 
 
 if __name__ == "__main__":
-    if sys.argv[1:] in (["--echo"], ["--stamp-echo"]):
+    if sys.argv[1:2] == ["--bare-paced"]:
+        import json
+        print(json.dumps(_bare_paced_here(int(sys.argv[2]), None)))
+    elif sys.argv[1:] in (["--echo"], ["--stamp-echo"]):
         try:
             _echo_main() if sys.argv[1] == "--echo" else _stamp_echo_main()
         except KeyboardInterrupt:
