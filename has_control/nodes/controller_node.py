@@ -73,7 +73,7 @@ from has_control.wire.topics import (
 )
 from has_control.wire.codec import NOT_FINITE, get_stamp
 from has_control.nodes.foxglove import node_tap
-from has_control.nodes.managed import refuse, bring_up, declare_autostart, state_label
+from has_control.nodes.managed import autostart as bring_up_now, declare_autostart, refuse, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
 from has_control.nodes.parameters import config_from_node, declare_config
 
@@ -142,7 +142,7 @@ class ControllerNode(LifecycleNode):
         self._tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         trigger_service(self, "~/reset", self.reset, "estimates reset to adaptation.initial")
         if autostart:
-            bring_up(self)
+            bring_up_now(self)
 
     # --- lifecycle -----------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:

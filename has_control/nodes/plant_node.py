@@ -74,7 +74,7 @@ from has_control.wire.topics import CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND_
 from has_control.wire.codec import NOT_FINITE
 from has_control.common.errors import ConfigError
 from has_control.nodes.foxglove import node_tap
-from has_control.nodes.managed import refuse, AUTOSTART, bring_up, state_label
+from has_control.nodes.managed import AUTOSTART, autostart, refuse, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, trigger_service
 from has_control.nodes.pacing import LoopStats, run_paced
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
@@ -125,7 +125,7 @@ class PlantNode(LifecycleNode):
         trigger_service(self, "~/start", self.start, "episode started")
         self.add_on_set_parameters_callback(self._on_set_parameters)
         if self.get_parameter("autostart").value:
-            bring_up(self)
+            autostart(self)
 
     # --- lifecycle -----------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
