@@ -65,6 +65,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -112,6 +113,7 @@ class PlantNode(LifecycleNode):
         self._entities: list = []
         self.failsafe_events = 0                  # samples run with the valve centred
         self.malformed_commands = 0
+        self.publish_failures = 0                 # states DDS refused to send
         self.conflicts = 0                        # samples answered twice, differently
         self.stop_on_conflict = False             # end the episode at the first one (stack does)
         self.started_at = self.run_seconds = 0.0
@@ -295,8 +297,13 @@ class PlantNode(LifecycleNode):
     def publish_state(self) -> None:
         """Write: the state of the current sample, then its clock (the state first: it is
         what the controller waits on; the clock's publish no longer delays it)."""
-        self._publish_state(bytes(self._state_msg))
-        self._publish_clock(bytes(self._clock_msg))
+        try:
+            self._publish_state(bytes(self._state_msg))
+            self._publish_clock(bytes(self._clock_msg))
+        except _rclpy.RCLError as exc:           # DDS refused the write (a reader gone, a full history)
+            self.publish_failures += 1            # the sample goes unanswered: a miss, not a crash
+            self.get_logger().warning(f"sample {self.sample} not published ({str(exc).split(',')[0]}); "
+                                      f"{self.publish_failures} so far", throttle_duration_sec=5.0)
         self._last_publish = time.monotonic()
         self._published = True
 
