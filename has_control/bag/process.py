@@ -13,6 +13,7 @@ naming the bag.
 """
 from __future__ import annotations
 
+import gc
 import multiprocessing
 import signal
 from pathlib import Path
@@ -68,6 +69,8 @@ class BagProcess:
 def _serve(conn, parents_end, path: Path, custom_data: dict[str, str]) -> None:
     """The child: open the bag, write what arrives, close on request or end-of-file."""
     parents_end.close()                              # so that the parent's death is our end-of-file
+    gc.freeze()             # the parent's objects are not ours to collect: finalising its garbage here
+    #                         (an rclpy node, a DDS handle) runs its C++ destructors in a fork: a crash
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     try:

@@ -56,6 +56,7 @@ answered, late (answers that took longer than one step Δt to compute),
 malformed, conflicts and whether â1, â2 are within ``adaptation.lower..upper``.
 """
 
+import gc
 import math
 import time
 
@@ -78,7 +79,7 @@ from has_control.wire.topics import (
 )
 from has_control.wire.codec import NOT_FINITE, get_stamp
 from has_control.nodes.foxglove import node_tap
-from has_control.nodes.managed import refuse, bring_up, declare_autostart, state_label
+from has_control.nodes.managed import autostart as bring_up_now, declare_autostart, refuse, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
 from has_control.nodes.parameters import config_from_node, declare_config
 
@@ -149,7 +150,7 @@ class ControllerNode(LifecycleNode):
         self._tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         trigger_service(self, "~/reset", self.reset, "estimates reset to adaptation.initial")
         if autostart:
-            bring_up(self)
+            bring_up_now(self)
 
     # --- lifecycle -----------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -406,7 +407,10 @@ class ControllerNode(LifecycleNode):
 
     # --- diagnostics -----------------------------------------------------------
     def _diagnose(self) -> None:
-        """/diagnostics: "<node>: control law" with the counts and the estimates' bounds."""
+        """/diagnostics: "<node>: control law" with the counts and the estimates' bounds
+        (and, in a controller process with the collector off, the young generations' cycles)."""
+        if not gc.isenabled():
+            gc.collect(1)
         cp = self.cfg.adaptation
         a = (self.a1_hat, self.a2_hat)
         in_bounds = all(lo <= v <= hi for v, lo, hi in zip(a, cp.lower, cp.upper))
@@ -427,4 +431,11 @@ class ControllerNode(LifecycleNode):
 
 
 def main(args=None):
-    node_main(args, ControllerNode, lambda executor, node: spin(executor))
+    node_main(args, ControllerNode, _serve)
+
+
+def _serve(executor, node: ControllerNode) -> None:
+    """A controller process: no collector pause between a state and its answer
+    (the once-a-second diagnostics collect instead), then serve until shutdown."""
+    gc.disable()
+    spin(executor)

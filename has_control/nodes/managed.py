@@ -39,6 +39,16 @@ def bring_up(node) -> None:
         raise ValueError(f"{node.get_fully_qualified_name()}: activate failed")
 
 
+def autostart(node) -> None:
+    """``bring_up`` in the node's constructor: a refusal destroys the half-made node
+    (its handles must not outlive the error, e.g. into a forked bag writer) and raises."""
+    try:
+        bring_up(node)
+    except ValueError:
+        node.destroy_node()
+        raise
+
+
 def refuse(node, exc: Exception) -> TransitionCallbackReturn:
     """``configure`` refused for ``exc``: its first line kept as ``node.configure_error``,
     logged unless :func:`bring_up` raises it anyway."""

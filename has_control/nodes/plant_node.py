@@ -68,6 +68,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
@@ -78,7 +79,7 @@ from has_control.wire.topics import (CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND
 from has_control.wire.codec import NOT_FINITE
 from has_control.common.errors import ConfigError
 from has_control.nodes.foxglove import node_tap
-from has_control.nodes.managed import refuse, AUTOSTART, bring_up, state_label
+from has_control.nodes.managed import AUTOSTART, autostart, refuse, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, trigger_service
 from has_control.nodes.pacing import LoopStats, run_paced
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
@@ -116,6 +117,7 @@ class PlantNode(LifecycleNode):
         self._entities: list = []
         self.failsafe_events = 0                  # samples run with the valve centred
         self.malformed_commands = 0
+        self.publish_failures = 0                 # states DDS refused to send
         self.conflicts = 0                        # samples answered twice, differently
         self.stop_on_conflict = False             # end the episode at the first one (stack does)
         self.started_at = self.run_seconds = 0.0
@@ -129,7 +131,7 @@ class PlantNode(LifecycleNode):
         trigger_service(self, "~/start", self.start, "episode started")
         self.add_on_set_parameters_callback(self._on_set_parameters)
         if self.get_parameter("autostart").value:
-            bring_up(self)
+            autostart(self)
 
     # --- lifecycle -----------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -313,12 +315,18 @@ class PlantNode(LifecycleNode):
                                   self._state_msg, self._clock_msg, self._scratch)
 
     def publish_state(self) -> None:
-        """Write: the clock and state of the current sample (and, with measured
-        states, the true state first)."""
-        self._publish_clock(bytes(self._clock_msg))
-        if self.measured:
-            self._publish_true(bytes(self._true_msg))
-        self._publish_state(bytes(self._state_msg))
+        """Write: the state of the current sample (with measured states, then the
+        true state), then its clock (the state first: it is what the controller
+        waits on; the clock's publish no longer delays it)."""
+        try:
+            self._publish_state(bytes(self._state_msg))
+            if self.measured:
+                self._publish_true(bytes(self._true_msg))
+            self._publish_clock(bytes(self._clock_msg))
+        except _rclpy.RCLError as exc:           # DDS refused the write (a reader gone, a full history)
+            self.publish_failures += 1            # the sample goes unanswered: a miss, not a crash
+            self.get_logger().warning(f"sample {self.sample} not published ({str(exc).split(',')[0]}); "
+                                      f"{self.publish_failures} so far", throttle_duration_sec=5.0)
         self._last_publish = time.monotonic()
         self._published = True
 

@@ -304,8 +304,8 @@ class TunerNode(Node):
     def _guarded(self) -> None:
         try:
             self.result = self.run_session()
-            self.status = f"finished: best k = {tuple(round(k, 2) for k in self.result['gains'])}, J = " \
-                          f"{self.result['J']:.6e}"
+            self.status = f"finished: best k = {tuple(round(k, 2) for k in self.result['gains'])}, " \
+                          f"J = {self.result['J']}"
         except Cancelled:
             self.status = "cancelled"
             self.get_logger().warning("session cancelled (~/cancel); a recorded one resumes with resume:=DIR")
