@@ -197,7 +197,7 @@ def session_records(tmp_path_factory):
     from has_control.tuning.session import Session
     from has_control.tuning.tuner import tune
     cfg = with_horizon(Config(), 1.2)
-    tuning = load_tuning().replace(particles=3, iterations=4)
+    tuning = load_tuning().replace(variant="pso-cp-tvac", particles=3, iterations=4)
     d = tmp_path_factory.mktemp("fuzzsession") / "s"
     session = Session(d, tuning, cfg)
 

@@ -135,6 +135,7 @@ def _server(behaviour):
     return s, s.getsockname()[1]
 
 
+@pytest.mark.cluster
 @pytest.mark.parametrize("behaviour", ["silent", "garbage", "http"])
 def test_an_address_that_is_not_a_scheduler_is_one_line(behaviour, capsys):
     pytest.importorskip("distributed")
@@ -172,6 +173,7 @@ def _signalled(argv, sig, delay, group=False, ready=lambda: True):
     return p.returncode, err
 
 
+@pytest.mark.cluster
 def test_ctrl_c_at_the_terminal_while_dask_gathers_is_one_line(tmp_path):
     pytest.importorskip("distributed")
     many = tmp_path / "many.yaml"
@@ -184,8 +186,8 @@ def test_ctrl_c_at_the_terminal_while_dask_gathers_is_one_line(tmp_path):
 # --- 10, 11: signals ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("argv, delay", [
-    (["tune", "--variant", "pso-cp-tvac", "--particles", "40", "--iterations", "100"], 0.3),         # while loading
-    (["tune", "--variant", "pso-cp-tvac", "--particles", "40", "--iterations", "100"], 6.0),         # while tuning
+    (["tune", "--variant", "pso-cp-tvac", "--particles", "80", "--iterations", "2000"], 0.3),      # while loading
+    (["tune", "--variant", "pso-cp-tvac", "--particles", "80", "--iterations", "2000"], 6.0),      # while tuning
 ])
 def test_sigterm_is_one_line_and_130(argv, delay):
     rc, err = _signalled(argv, signal.SIGTERM, delay)
@@ -204,6 +206,7 @@ def test_sigterm_leaves_a_session_that_resumes(tmp_path):
     assert tuning.swarm.particles == 80 and (swarm is None or swarm.iteration == k)
 
 
+@pytest.mark.ros
 def test_ctrl_c_during_a_realtime_stack_is_one_line():
     rc, err = _signalled(["stack", "--realtime", "--duration", "20"], signal.SIGINT, 9.0)
     assert rc == 130 and err.strip().splitlines() == ["has-control: interrupted"], err
@@ -269,6 +272,7 @@ def test_custom_data_that_is_not_a_map_of_strings_is_one_line(bag0, tmp_path, ca
         one_line(capsys, [cmd, d], "metadata.yaml: custom_data", warnings=True)
 
 
+@pytest.mark.ros
 def test_replay_refuses_a_step_that_does_not_fit_the_recorded_stamps_up_front(bag0, tmp_path):
     from has_control.nodes.replay import replay_controller
 
@@ -296,6 +300,7 @@ def test_scenario_files_that_overflow_or_say_a_key_twice_are_one_line(tmp_path, 
     one_line(capsys, ["tune", "--duration", 1.2, "--scenarios", p], p, culprit)
 
 
+@pytest.mark.ros
 def test_every_front_end_checks_scenarios_and_aggregate_alike(tmp_path, capsys, context):
     from rclpy.parameter import Parameter
 
@@ -366,6 +371,7 @@ def test_the_road_cache_holds_more_than_32_roads():
     assert all(road_cached(c.reference, c.episode) for c in cfgs)
 
 
+@pytest.mark.ros
 def test_the_controller_builds_a_new_road_off_its_executor(context, monkeypatch):
     import types
 
@@ -404,7 +410,7 @@ def session3(tmp_path_factory):
     from has_control.tuning.session import Session
     from has_control.tuning.tuner import load_tuning, tune
     cfg = with_horizon(Config(), 1.2)
-    tuning = load_tuning().replace(particles=4, iterations=3)
+    tuning = load_tuning().replace(variant="pso-cp-tvac", particles=4, iterations=3)
     d = tmp_path_factory.mktemp("sessions") / "s"
     session = Session(d, tuning, cfg)
 

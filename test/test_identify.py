@@ -53,6 +53,7 @@ def _covers(e, truth):
     return e.lower <= truth <= e.upper
 
 
+@pytest.mark.ros
 def test_the_graph_records_readings_the_library_reproduces_and_scores_the_truth(recording):
     cfg, run, bag = recording
     ref = simulate(cfg)
@@ -67,6 +68,7 @@ def test_the_graph_records_readings_the_library_reproduces_and_scores_the_truth(
     assert noise == pytest.approx([1e-6, 1e-4, 1e4, 1e4], rel=0.05)
 
 
+@pytest.mark.ros
 def test_a_noisy_graph_recording_is_identified_within_its_intervals(recording):
     cfg, _, bag = recording
     res = identify([experiment_from_bag(bag)])
@@ -82,6 +84,7 @@ def test_a_noisy_graph_recording_is_identified_within_its_intervals(recording):
     assert [res.residual_rms[c] for c in ("y", "ydot", "P1", "P2")] == pytest.approx([1e-6, 1e-4, 1e4, 1e4], rel=0.1)
 
 
+@pytest.mark.ros
 def test_an_exact_recording_gives_the_plant_and_the_cli_writes_a_params_file_nodes_accept(tmp_path):
     cfg = _cfg({"noise.position": 0.0, "noise.velocity": 0.0, "noise.pressure_cap": 0.0,
                 "noise.pressure_rod": 0.0}, horizon=2.0)
@@ -116,6 +119,7 @@ def test_an_exact_recording_gives_the_plant_and_the_cli_writes_a_params_file_nod
         rclpy.try_shutdown(context=ctx)
 
 
+@pytest.mark.ros
 def test_a_parameter_the_experiment_does_not_excite_is_reported_not_identifiable():
     # the cylinder held still by an exact controller, after its start: the command barely moves
     # (a range of 0.16 um), so the valve's lag never shows; the velocity is 0.5 um/s, so the
@@ -138,6 +142,7 @@ def test_a_parameter_the_experiment_does_not_excite_is_reported_not_identifiable
     assert doc["estimates"]["valve_time_constant"]["status"] == "not identifiable"
 
 
+@pytest.mark.ros
 def test_a_bag_converted_by_rosbags_is_identified_the_same_way(recording, tmp_path):
     convert = shutil.which("rosbags-convert") or os.path.join(os.path.dirname(sys.executable), "rosbags-convert")
     _, _, bag = recording
@@ -155,6 +160,7 @@ def test_a_bag_converted_by_rosbags_is_identified_the_same_way(recording, tmp_pa
         assert theirs.estimates[k].value == pytest.approx(e.value, rel=1e-9), k
 
 
+@pytest.mark.ros
 def test_validation_on_a_held_out_run_fits_and_draws(recording, tmp_path):
     cfg, _, bag = recording
     held_cfg = _cfg({"reference.kind": "sine", "reference.amplitude": 0.02, "reference.omega": 9.0,

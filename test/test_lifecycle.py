@@ -22,6 +22,8 @@ from has_control.nodes.plant_node import PlantNode
 from has_control.wire import steps
 from has_control.wire.topics import CLOCK_LAYOUT, STATE_LAYOUT
 
+pytestmark = [pytest.mark.ros]
+
 #: The hardware's joints: other names than the plant's, extra joints around them.
 JOINTS = ["wheel_hub", "rod", "cap_side", "rod_side", "pump"]
 MAPPING = ["rod/position", "rod/velocity", "cap_side/effort", "rod_side/effort"]

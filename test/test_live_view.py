@@ -7,12 +7,15 @@ import subprocess
 import sys
 import time
 
+import pytest
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from has_control.nodes.live_process import SLOTS, LiveViewProcess
 from has_control.wire.topics import STATE_LAYOUT
 from test_foxglove import _advertised, _connect, _free_port, _message_data, _subscribe
+
+pytestmark = [pytest.mark.ros]
 
 
 def test_the_writer_never_waits_for_the_viewer_which_loses_the_oldest():

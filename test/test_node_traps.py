@@ -8,6 +8,8 @@ import pytest
 from has_control.config import with_horizon
 from has_control.core.params import Config
 
+pytestmark = [pytest.mark.ros]
+
 CLI = [sys.executable, "-m", "has_control.cli"]
 
 

@@ -70,6 +70,7 @@ def _line(ax, prefix):
     return hits[0]
 
 
+@pytest.mark.ros
 def test_the_plotted_error_is_the_scored_error_over_the_shaded_metric_window(recorded):
     d, cfg = recorded
     score, _ = score_bag(d)
@@ -90,6 +91,7 @@ def test_the_plotted_error_is_the_scored_error_over_the_shaded_metric_window(rec
     matplotlib.pyplot.close(rf.fig)
 
 
+@pytest.mark.ros
 def test_every_panel_names_its_unit_and_plots_the_run_in_them(recorded):
     d, _ = recorded
     run = recorded_run(read_bag(d))
@@ -121,6 +123,7 @@ def test_valve_limit_and_projection_bounds_are_drawn_from_the_runs_config():
     matplotlib.pyplot.close(rf.fig)
 
 
+@pytest.mark.ros
 def test_the_gains_in_force_step_where_a_tuner_changed_them(recorded, tmp_path):
     d, cfg = recorded
     change = cdr.encode_float64_arrays([[0.6, 300.0, 310.0, 320.0]], column_label(GAINS_COLUMNS))[0]
@@ -134,6 +137,7 @@ def test_the_gains_in_force_step_where_a_tuner_changed_them(recorded, tmp_path):
     matplotlib.pyplot.close(rf.fig)
 
 
+@pytest.mark.ros
 def test_a_realtime_bag_with_unanswered_samples_is_plotted_with_them_marked(recorded, tmp_path):
     d, cfg = recorded
     dropped = {100, 2001, 2002}
@@ -152,6 +156,7 @@ def test_a_realtime_bag_with_unanswered_samples_is_plotted_with_them_marked(reco
     assert r.returncode == 0 and out.read_bytes()[:4] == b"\x89PNG", r.stderr
 
 
+@pytest.mark.ros
 def test_missed_and_fail_safe_samples_recorded_by_a_realtime_stack_are_marked(recorded, tmp_path):
     d, cfg = recorded
     stats = LoopStats(300_000)
@@ -176,6 +181,7 @@ def test_missed_and_fail_safe_samples_recorded_by_a_realtime_stack_are_marked(re
     assert run_series(d).missed is None                       # a lock-step bag does not say
 
 
+@pytest.mark.ros
 def test_a_realtime_stack_bag_records_every_missed_sample(tmp_path):
     cfg = with_horizon(Config(), HORIZON)
     run = run_stack(cfg, record=tmp_path / "rt", realtime=True, domain_id=230)
@@ -186,6 +192,7 @@ def test_a_realtime_stack_bag_records_every_missed_sample(tmp_path):
     assert list(s.missed[:len(run.missed_at)]) == run.missed_at
 
 
+@pytest.mark.ros
 def test_a_bag_converted_by_rosbags_convert_plots_like_the_original(recorded, tmp_path):
     d, cfg = recorded
     exe = shutil.which("rosbags-convert", path=str(Path(sys.executable).parent))
@@ -204,6 +211,7 @@ def test_a_bag_converted_by_rosbags_convert_plots_like_the_original(recorded, tm
     assert r.returncode == 0 and (tmp_path / "c.pdf").read_bytes()[:4] == b"%PDF", r.stderr
 
 
+@pytest.mark.ros
 def test_a_bag_from_another_recorder_plots_on_its_own_grid(recorded, tmp_path):
     """Wall-clock stamps with jitter, no parameters (a real machine's bag): the
     grid starts at the first state, Δt is the stamps' median step."""
@@ -250,6 +258,7 @@ def test_a_tuner_sessions_validation_bag_and_the_tune_figures(tmp_path):
     assert r.returncode == 0 and b"<svg" in (tmp_path / "w.svg").read_bytes()[:500], r.stderr
 
 
+@pytest.mark.ros
 def test_cli_overlays_several_bags_named_by_their_gains(recorded, tmp_path):
     d, cfg = recorded
     other = tmp_path / "other"
@@ -271,6 +280,7 @@ def test_cli_overlays_several_bags_named_by_their_gains(recorded, tmp_path):
     ("reversed-window", "--window 1 0.5: empty"),
     ("window-outside", "--window 5 6:"),
 ])
+@pytest.mark.ros
 def test_bad_input_is_one_line_and_exit_2_and_no_figure(recorded, tmp_path, case, culprit):
     d, _ = recorded
     out = tmp_path / "f.png"

@@ -118,6 +118,7 @@ def test_a_session_killed_mid_way_resumes_to_the_same_result(tmp_path):
     assert read_bag(d / SESSION).count(ITERATION) == a["iterations"] > done
 
 
+@pytest.mark.cluster
 def test_tuning_on_dask_gives_the_local_bits():
     pytest.importorskip("distributed")
     from has_control.tuning.dask_evaluator import dask_batch
@@ -193,6 +194,7 @@ def test_diagnose_is_quiet_inside_and_where_J_rises_outward():
     assert not c.falls and c.slope > 0 and d.warnings == []
 
 
+@pytest.mark.ros
 def test_the_tuner_node_runs_cma_restarts_as_the_library_does_and_warns(domain_id, tmp_path):
     from has_control.nodes.stack import run_tuning_stack
     from has_control.tuning.tuner import load_tuning

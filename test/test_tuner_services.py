@@ -2,6 +2,7 @@
 batch evaluator without any plant or controller."""
 import time
 
+import pytest
 import rclpy
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
@@ -11,6 +12,8 @@ from has_control.config import config_parameters, with_horizon
 from has_control.core.params import Config
 from has_control.nodes.tuner_node import TunerNode
 from has_control.tuning.tuner import load_tuning, tune
+
+pytestmark = [pytest.mark.ros]
 
 
 def _tuner(context, **swarm):

@@ -382,7 +382,8 @@ class TunerNode(Node):
             elapsed = time.perf_counter() - t0
             progress = sw.progress()                   # the share of the budget used, 0..1
             eta = elapsed / progress * (1.0 - progress) if progress > 0 else math.inf
-            self.status = f"running: {sw.name} {100 * progress:.0f} %, best J = {sw.gbest_f:.6e}, ETA {eta:.0f} s"
+            self.status = (f"running: {sw.name} iteration {sw.iteration} ({100 * progress:.0f} %), "
+                           f"best J = {sw.gbest_f:.6e}, ETA {eta:.0f} s")
             self.progress_pub.publish(PROGRESS_LAYOUT.encode([
                 float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations), elapsed, eta]))
             if sw.iteration % every == 0 or sw.done:
