@@ -116,6 +116,24 @@ def test_no_import_cycles():
             visit(m, [m])
 
 
+def test_function_level_imports_state_their_reason():
+    """An import inside a function is there for a reason (start-up time, an
+    optional dependency, a cycle): a comment on its line, or on the line above
+    the run of import lines it belongs to, says which."""
+    silent = []
+    for module, _, path in _modules():
+        lines = path.read_text().split("\n")
+        for line, name, at_top in _imports(path, module):
+            if at_top or "#" in lines[line - 1]:
+                continue
+            above = line - 2
+            while above >= 0 and lines[above].strip().startswith(("from ", "import ")):
+                above -= 1
+            if above < 0 or not lines[above].strip().startswith("#"):
+                silent.append(f"{path.relative_to(PACKAGE)}:{line}: {lines[line - 1].strip()}")
+    assert sorted(set(silent)) == []
+
+
 def _loaded_by(modules, banned) -> str:
     code = ("import sys\n"
             + "".join(f"import {m}\n" for m in modules)

@@ -27,6 +27,12 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from has_control.config import with_horizon
+from has_control.core.params import Config
+from has_control.nodes.pacing import run_paced
+from has_control.nodes.runtime import CONTROL_QOS, spin
+from has_control.nodes.stack import run_stack
+from has_control.wire.topics import COMMAND, COMMAND_LAYOUT, COMMAND_NAMES, RUN_TOPICS, STATE, STATE_LAYOUT, STATE_NAMES
 
 STEP = 0.0003
 
@@ -44,8 +50,6 @@ def _bare_nodes(context, echo_in_process: bool):
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
-    from has_control.wire.topics import COMMAND, STATE, STATE_NAMES
-    from has_control.nodes.runtime import CONTROL_QOS
     a = rclpy.create_node("bare_plant", context=context)
     state = serialize_message(JointState(name=STATE_NAMES, position=[0.0] * 3, velocity=[0.0] * 3,
                                          effort=[0.0] * 3))
@@ -64,8 +68,6 @@ def _echo_node(context):
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import JointState
 
-    from has_control.wire.topics import COMMAND, COMMAND_NAMES, STATE
-    from has_control.nodes.runtime import CONTROL_QOS
     b = rclpy.create_node("bare_controller", context=context)
     command = serialize_message(JointState(name=COMMAND_NAMES, position=[0.0]))
     out = b.create_publisher(JointState, COMMAND, CONTROL_QOS)
@@ -123,8 +125,6 @@ class _BarePlant:
     def __init__(self, node, samples: int, step_ns: int):
         from sensor_msgs.msg import JointState
 
-        from has_control.nodes.runtime import CONTROL_QOS
-        from has_control.wire.topics import COMMAND, STATE, STATE_LAYOUT
         self.node, self.samples, self.step_ns = node, samples, step_ns
         self.sample, self.finished = 0, False
         self.command_sample, self.command_u = -1, 0.0
@@ -177,7 +177,6 @@ def _bare_paced_here(samples: int, domain: int | None, priority: int = 50, warm_
     import rclpy
     from rclpy.experimental import EventsExecutor
 
-    from has_control.nodes.pacing import run_paced
     step_ns = int(round(STEP * 1e9))
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
@@ -222,8 +221,6 @@ def _stamp_echo_main() -> None:
     from rclpy.experimental import EventsExecutor
     from sensor_msgs.msg import JointState
 
-    from has_control.nodes.runtime import CONTROL_QOS, spin
-    from has_control.wire.topics import COMMAND, COMMAND_LAYOUT, STATE
     with rclpy.init():
         node = rclpy.create_node("bare_paced_echo")
         command = bytearray(COMMAND_LAYOUT.encode([0.0]))
@@ -283,7 +280,6 @@ def _live_view_run(duration: float, domain: int) -> dict:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    from has_control.wire.topics import RUN_TOPICS
     client = subprocess.Popen([sys.executable, "-c", LIVE_CLIENT, str(port), str(duration + 30), str(len(RUN_TOPICS))],
                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:
@@ -326,9 +322,6 @@ def _processes(duration: float, domain: int, realtime: bool, internals: bool = T
 
 
 def _stack(duration: float, domain: int, **kw) -> dict:
-    from has_control.config import with_horizon
-    from has_control.core.params import Config
-    from has_control.nodes.stack import run_stack
     run = run_stack(with_horizon(Config(), duration), domain_id=domain, publish_internals=True, **kw)
     n = len(run.trace)
     return {**run.loop, "seconds": run.seconds, "bag": run.bag,
@@ -419,7 +412,6 @@ def _echo_main() -> None:
     import rclpy
     from rclpy.experimental import EventsExecutor
 
-    from has_control.nodes.runtime import spin
     with rclpy.init():
         ex = EventsExecutor()
         ex.add_node(_echo_node(None))

@@ -28,6 +28,7 @@ from has_control.tuning.methods import new_optimiser
 from has_control.tuning.restarts import RestartSettings
 from has_control.tuning.swarm import SwarmSettings
 from has_control.tuning.tuner import Tuning, make_objective
+from has_control.common.files import write_atomic
 
 BOX = (np.array([150.0, 150.0, 150.0]), np.array([1200.0, 800.0, 800.0]))
 #: Best J known in the box (issue #21's grid + Nelder-Mead study; the runs here may lower it).
@@ -222,5 +223,4 @@ def print_tuners(seeds: int = 30, methods=None, budgets=None, robust: bool = Fal
     text = head + "\n\n" + table(rows, best)
     print(text)
     if markdown:
-        from has_control.common.files import write_atomic
         write_atomic(markdown, text + "\n")

@@ -17,6 +17,14 @@ import sys
 from pathlib import Path
 
 from has_control.core.params import MANUAL_GAINS, PAPER_TABLE3, PAPER_TUNED_GAINS, Config
+from has_control.bag.series import run_series
+from has_control.core.episode import simulate
+from has_control.nodes.stack import run_tuning_stack
+from has_control.plots.figures import plot_convergence, plot_gains
+from has_control.plots.run_figure import gains_text, plot_runs, view_of_series, view_of_trace
+from has_control.tuning.bounds import BoundDiagnostics
+from has_control.tuning.session import SESSION, swarm_result
+from has_control.tuning.tuner import load_tuning, tune
 
 PAPER_ROWS = (("PSO+CP+TVAC-ABC (paper)", PAPER_TABLE3["tuned"]),
               ("ABC manual (paper)", PAPER_TABLE3["manual"]))
@@ -27,14 +35,6 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
-    from has_control.bag.series import run_series
-    from has_control.core.episode import simulate
-    from has_control.nodes.stack import run_tuning_stack
-    from has_control.plots.figures import plot_convergence, plot_gains
-    from has_control.plots.run_figure import gains_text, plot_runs, view_of_series, view_of_trace
-    from has_control.tuning.session import SESSION, swarm_result
-    from has_control.tuning.bounds import BoundDiagnostics
-    from has_control.tuning.tuner import load_tuning, tune
 
     cfg = Config()
     tuning = load_tuning().replace(seed=args.seed)

@@ -25,6 +25,7 @@ from typing import Callable
 from has_control.common.errors import HasControlError
 from has_control.wire.topics import CLOCK, JOINT_STATE, LAYOUTS, RUN_TOPICS
 from has_control.nodes.runtime import tee
+from has_control.bag import msgdef
 
 DEFAULT_PORT = 8765
 PARAMETER = "foxglove_port"
@@ -49,7 +50,6 @@ def check_port(port, what: str) -> int:
 def _schema(msgtype: str):
     import foxglove
 
-    from has_control.bag import msgdef
     return foxglove.Schema(name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode())
 
 

@@ -31,6 +31,8 @@ from std_msgs.msg import Float64MultiArray, String
 from has_control.wire import cdr
 from has_control.bag import CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, STATE, STRING, BagError, read_bag
 from has_control.nodes.runtime import CONTROL_QOS, borrowed_context, sample_of
+from has_control.config import config_parameters
+from has_control.nodes.controller_node import ControllerNode
 
 CLASSES = {JOINT_STATE: JointState, CLOCK: Clock, FLOAT64_ARRAY: Float64MultiArray, STRING: String}
 
@@ -101,8 +103,6 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
     """Feed the recorded states to the running controller node ``node`` (its
     fully qualified name) or, None, to a controller built here from the bag's
     parameters; compare its commands with the recorded ones."""
-    from has_control.config import config_parameters
-    from has_control.nodes.controller_node import ControllerNode
     bag = read_bag(path)
     cfg = bag.config()
     st, cm = bag.find(STATE, JOINT_STATE), bag.find(COMMAND, JOINT_STATE)

@@ -24,10 +24,17 @@ from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.managed import bring_up
 from has_control.nodes.runtime import borrowed_context, tee
-from has_control.nodes.plant_node import PlantNode
 from has_control.wire import cdr
 from has_control.wire.codec import column_label
 from has_control.wire.topics import FLOAT64_ARRAY, MEASURED_RUN_TOPICS, MISSED, MISSED_COLUMNS
+from has_control.common.errors import HasControlError
+from has_control.config import build_config, config_parameters
+from has_control.core.episode import EpisodeArrays
+from has_control.core.reference import reference
+from has_control.nodes.plant_node import PREFIXES, PlantNode
+from has_control.nodes.recorder import Recorder
+from has_control.nodes.tuner_node import TunerNode
+from has_control.tuning.tuner import load_tuning, tuning_parameters
 
 
 @dataclass
@@ -43,13 +50,11 @@ class StackRun:
 
 
 def _overrides(cfg: Config) -> list[Parameter]:
-    from has_control.config import config_parameters
     return [Parameter(k, value=v) for k, v in config_parameters(cfg).items()]
 
 
 def _plant_parameters(params: list[Parameter]) -> list[Parameter]:
     """The plant's share of a Config's parameters (actuator.*, simulation.*)."""
-    from has_control.nodes.plant_node import PREFIXES
     return [p for p in params if p.name.startswith(PREFIXES)]
 
 
@@ -88,7 +93,6 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     URL before the run starts, and the run waits up to ``foxglove_wait`` seconds
     for a client to subscribe.
     """
-    from has_control.config import build_config
     cfg = cfg or Config()
     namespace = normalise_namespace(namespace)
     if gains is not None:
@@ -107,7 +111,6 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         interrupted: list = []
         try:
             if record is not None:
-                from has_control.nodes.recorder import Recorder
                 recorder = Recorder(namespace=namespace, subscribe=False, process=True,
                                     topics=MEASURED_RUN_TOPICS if measured else None)
                 recorder.open(record, cfg)
@@ -184,7 +187,6 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at,
                        close_seconds)
         if any(conflicts):
-            from has_control.common.errors import HasControlError
             raise HasControlError(
                 f"namespace '{namespace or '/'}': another node publishes on this loop's topics "
                 f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
@@ -200,7 +202,6 @@ def normalise_namespace(namespace: str | None) -> str:
 
 def _bring_up(node) -> None:
     """Configure and activate ``node``; a refusal is one line naming it."""
-    from has_control.common.errors import HasControlError
     node.quiet = True                            # the stack's own lines say what runs
     try:
         bring_up(node)
@@ -214,6 +215,7 @@ def _live_view(port: int | None):
     if port is None:
         from contextlib import nullcontext
         return nullcontext()
+    # lazy: foxglove-sdk is an optional dependency (the "live" extra); only --foxglove needs it
     from has_control.nodes.live_process import LiveViewProcess
     return LiveViewProcess(port)
 
@@ -222,7 +224,6 @@ def _refuse_strangers(plant, controller) -> None:
     """Another publisher on the loop's state or command topic (a second
     controller, a second stack in this namespace) would mix its numbers into
     this run: refuse to start."""
-    from has_control.common.errors import HasControlError
     for node, topic in ((plant, controller._state_topic), (controller, plant._command_topic)):
         n = node.count_publishers(topic)
         if n > 1:
@@ -275,8 +276,6 @@ def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndar
     """A paced run's trace from what the plant ran: its states and the command
     each sample ran with (a held one after a miss), e1 against the reference;
     the controller's internals where it answered that sample (else NaN)."""
-    from has_control.core.episode import EpisodeArrays
-    from has_control.core.reference import reference
     rows = np.array(log, dtype=float).reshape(-1, 6)          # (sample, y, ẏ, P1, P2, u)
     trace = answered[:len(rows)].copy()
     t = rows[:, 0] * cfg.episode.step
@@ -335,9 +334,6 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
     graph episode under ``record/episodes``. ``scenarios``: a scenario file
     (robust tuning, batch evaluator) scored by ``aggregate``.
     """
-    from has_control.tuning.tuner import load_tuning
-    from has_control.tuning.tuner import tuning_parameters
-    from has_control.nodes.tuner_node import TunerNode
     tuning = load_tuning(config_files).replace(**changes)
     namespaces = [normalise_namespace(ns) for ns in namespaces or [""]]
     with borrowed_context(context, domain_id=domain_id) as context:
@@ -364,7 +360,6 @@ def run_tuning_stack(cfg: Config, changes: dict, config_files=(), evaluator: str
         for node in nodes:
             node.destroy_node()
         if tuner.error:
-            from has_control.common.errors import HasControlError
             raise HasControlError(tuner.error)
         if tuner.result is None:
             raise RuntimeError(f"the tuner did not finish within {timeout:g} s")

@@ -61,6 +61,8 @@ from has_control.tuning.tuner import Tuning, load_tuning, robust_tuning, tuning_
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 from has_control.nodes.recorder import Recorder
 from has_control.wire.topics import PROGRESS_LAYOUT
+from has_control.nodes.runtime import node_main, spin
+from has_control.tuning.session import run_session
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.", "plant.", "noise.")
 EVALUATORS = ("graph", "batch")
@@ -342,7 +344,6 @@ class TunerNode(Node):
         """The session (the same runner as ``has-control tune``), candidates scored
         by the batch evaluator or through the lanes, the best gains set on every
         lane and (``validate_best``) validated through the graph."""
-        from has_control.tuning.session import run_session
         log = self.get_logger()
         record = self.get_parameter("record").value or None
         resume_dir = self.get_parameter("resume").value or None
@@ -489,7 +490,6 @@ def _duration(seconds: float) -> str:
 
 
 def main(args=None):
-    from has_control.nodes.runtime import node_main, spin
     failed = []
 
     def serve(executor, node: TunerNode) -> None:

@@ -38,6 +38,7 @@ import numpy as np
 from has_control.core.episode import LANES, evaluate_configs
 from has_control.common.errors import HasControlError, shown
 from has_control.core.params import Config
+from has_control.config import build_config
 from has_control.core.reference import check_road_memory
 
 #: Most worker processes ``local:N`` starts (a typo such as local:1000000 would fork that many).
@@ -267,8 +268,8 @@ class DaskBatch:
         return nthreads
 
     def _warm(self, check_bits: bool) -> None:
+        # lazy: dask_worker imports distributed (the optional "dask" extra), loaded only once a cluster is used
         from has_control.tuning.dask_worker import warm_worker
-        from has_control.config import build_config
         cfg = build_config(PROBE_PARAMETERS, source="dask warm-up", base=Config())
         workers = sorted(self._workers(self.min_workers))
         futures = [self.client.submit(warm_worker, PROBE_GAINS, cfg, workers=[w], allow_other_workers=False,
@@ -293,8 +294,8 @@ class DaskBatch:
         """The tokens of ``cfgs`` in this batch's ConfigStore: registers the
         store anew (on every worker, now and later, replacing the last) when
         a Config is not in it; it then holds this call's Configs only."""
+        # lazy: dask and distributed are the optional "dask" extra, loaded only once a cluster is used
         from dask.base import tokenize
-
         from has_control.tuning.dask_worker import ConfigStore
         if self._tokens is None or any(c not in self._tokens for c in cfgs):
             tokens = {c: tokenize(c) for c in dict.fromkeys(cfgs)}
@@ -306,6 +307,7 @@ class DaskBatch:
     def __call__(self, gains, cfgs) -> np.ndarray:
         """(P, S, 4) scores (J, e_max, e_μ, e_σ) of every gain set (P, 3) under
         every Config; +inf when diverged. Same bits as ``evaluate_configs``."""
+        # lazy: dask_worker imports distributed (the optional "dask" extra)
         from has_control.tuning.dask_worker import evaluate_chunk
         if self.client is None:
             raise ClusterError(f"dask spec {self.spec}: the batch is closed")

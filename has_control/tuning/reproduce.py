@@ -69,6 +69,7 @@ def run_experiment(seeds: int, tuning: Tuning | None = None, cfg: Config | None 
 
 def write_report(rows: list[Row], out: Path, cfg: Config | None = None,
                  upper: tuple[float, float, float] = Tuning().upper) -> Path:
+    # lazy: matplotlib takes about 1 s to load; has-control loads this module for every command
     from has_control.common.files import write_atomic
     from has_control.plots.figures import plot_convergence_spread, plot_gains
     from has_control.plots.run_figure import gains_text, plot_runs, view_of_trace

@@ -31,13 +31,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
 
-import cma
 import numpy as np
 
 from has_control.common.errors import shown
 from has_control.tuning.swarm import IterationRecord, SwarmError, SwarmResult, _check_bounds, record_dict, record_from
+
+if TYPE_CHECKING:                    # pycma is imported where a search starts (see _search)
+    import cma
 
 METHOD = "cma-restarts"
 SCALES = ("linear", "log")
@@ -136,13 +138,15 @@ class Restarts:
         return np.clip((x - self.lower) / (self.upper - self.lower), 0.0, 1.0)
 
     # --- the algorithm: a generator of batches, sent their costs -------------
-    def _search(self, z0: np.ndarray, sigma: float) -> cma.CMAEvolutionStrategy:
+    def _search(self, z0: np.ndarray, sigma: float) -> "cma.CMAEvolutionStrategy":
         s = self.settings
         draws = np.random.default_rng(self.rng.integers(2**63))
 
         def randn(*shape):
             return draws.standard_normal(shape)
         self.searches += 1
+        # lazy: pycma loads scipy.stats on import (about 1 s); only a cma-restarts run needs it
+        import cma
         return cma.CMAEvolutionStrategy(list(z0), sigma, {
             "bounds": [0.0, 1.0], "popsize": s.population, "seed": np.nan, "randn": randn,
             "verbose": -9, "verb_log": 0, "verb_disp": 0, "tolfun": 0.0, "tolfunhist": 0.0,
@@ -189,7 +193,7 @@ class Restarts:
         self.stop_reason = (f"spent the budget of {s.evaluations} evaluations" if self.evaluations >= s.evaluations
                             else "the polish converged")
 
-    def _converged(self, es: cma.CMAEvolutionStrategy, bests: list[float]) -> bool:
+    def _converged(self, es: "cma.CMAEvolutionStrategy", bests: list[float]) -> bool:
         s = self.settings
         if es.stop():
             return True

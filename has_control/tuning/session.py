@@ -32,19 +32,20 @@ from pathlib import Path
 
 import numpy as np
 
-from has_control.bag import (
-    PARAMETERS_KEY, STRING, BagError, BagWriter, QosSpec, parameters_json, read_bag, warn, write_trace,
-)
 from has_control.bag.read import parameters_from_json
 from has_control.common.errors import HasControlError, shown
-from has_control.common.files import DirectoryLock
 from has_control.common.json_bounded import loads_bounded
-from has_control.config import build_config
 from has_control.tuning.bounds import BoundDiagnostics
 from has_control.tuning.methods import new_optimiser, restore as restore_optimiser
 from has_control.tuning.restarts import Restarts
-from has_control.tuning.swarm import Swarm, record_dict, record_from
-from has_control.tuning.tuner import TuneResult, Tuning, tuning_from_json, tuning_json
+from has_control.bag import (
+    BagError, BagWriter, PARAMETERS_KEY, QosSpec, STRING, parameters_json, read_bag, typestore, warn, write_trace,
+)
+from has_control.common.files import DirectoryLock, write_atomic
+from has_control.config import build_config, write_gains_params
+from has_control.core.episode import simulate
+from has_control.tuning.swarm import Swarm, SwarmResult, record_dict, record_from
+from has_control.tuning.tuner import TuneResult, Tuning, tune, tuning_from_json, tuning_json
 
 SESSION = "session"
 SETTINGS, ITERATION, SWARM, RESULT = "/tuner/settings", "/tuner/iteration", "/tuner/swarm", "/tuner/result"
@@ -55,7 +56,6 @@ RESULT_FILE = "tune.json"           # written last: its presence says the sessio
 
 
 def _string(text: str) -> bytes:
-    from has_control.bag import typestore
     msg = typestore().types[STRING](data=text)
     return bytes(typestore().serialize_cdr(msg, STRING))
 
@@ -279,7 +279,6 @@ def swarm_result(directory: str | Path):
     """The session's :class:`SwarmResult` rebuilt from its iteration records
     (for the convergence and gain figures)."""
     import math
-    from has_control.tuning.swarm import SwarmResult
     bag = read_bag(Path(directory) / SESSION, topics=(ITERATION, RESULT), on_warning=lambda m: None)
     try:
         history = [record_from(_json(d)) for _, d in bag.messages.get(ITERATION, [])]
@@ -324,9 +323,6 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
     evaluator (see :func:`~has_control.tuning.tuner.tune`; a Dask one gives the
     same bits, so a session may resume on another).
     """
-    from has_control.config import write_gains_params
-    from has_control.common.files import write_atomic
-    from has_control.tuning.tuner import tune
     swarm = stored = session = None
     if resume_dir is not None:
         r = resume(resume_dir, on_warning)
@@ -360,7 +356,6 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
                 record_validation(res.gains, session.writer, cfg)
                 bag = session.finish(out)
             else:
-                from has_control.core.episode import simulate
                 bag = session.finish(out, simulate(cfg, res.gains), cfg)
             if artefacts is not None:
                 artefacts(res, d)

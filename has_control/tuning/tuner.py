@@ -27,6 +27,7 @@ from has_control.tuning.bounds import BoundDiagnostics, diagnose
 from has_control.tuning.methods import DEFAULT, check_method, drive, is_swarm, new_optimiser
 from has_control.tuning.restarts import RestartSettings
 from has_control.tuning.swarm import Swarm, SwarmError, SwarmResult, SwarmSettings
+from has_control.common.json_numbers import to_json
 
 TUNER_FILE = default_config_files()[0].parent / "tuner.yaml"
 
@@ -226,7 +227,6 @@ class TuneResult:
 
     def as_json(self) -> dict:
         """Keys of ``has-control tune --json``."""
-        from has_control.common.json_numbers import to_json
         return {"variant": self.variant, "seed": self.seed, "gains": list(self.gains),
                 "J": to_json(self.result.fun), "iterations": self.result.nit,
                 "evaluations": self.result.nfev, "seconds": self.seconds,
