@@ -94,5 +94,7 @@ with quiet_interrupts():        # the first second of every command, before cli.
     from has_control.core.scenarios import Aggregate, ScenarioScores, parse_aggregate  # noqa: E402,F401
 
     # Tuning
-    from has_control.tuning.swarm import Swarm, SwarmResult, SwarmSettings, minimize  # noqa: E402,F401
+    from has_control.tuning.methods import METHODS, minimize  # noqa: E402,F401
+    from has_control.tuning.restarts import RestartSettings, Restarts  # noqa: E402,F401
+    from has_control.tuning.swarm import Swarm, SwarmResult, SwarmSettings  # noqa: E402,F401
     from has_control.tuning.tuner import Tuning, load_tuning, tune  # noqa: E402,F401

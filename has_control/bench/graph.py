@@ -405,7 +405,8 @@ def print_graph(g: dict) -> None:
         print(f"    the live view adds {live['missed_samples'] - alone['missed_samples']} missed "
               f"({100 * (live['missed_samples'] - alone['missed_samples']) / total:+.3f} % of samples) and "
               f"{live['failsafe_samples'] - alone['failsafe_samples']} fail-safe samples "
-              f"(client: {live.get('client', '?')} channels, messages; target <= 0.1 %, 0 fail-safe)")
+              f"(client: {' channels, '.join(live.get('client', '? ?').split()[:2])} messages received; "
+              "target <= 0.1 %, 0 fail-safe)")
 
 
 def _echo_main() -> None:
