@@ -29,7 +29,7 @@ from has_control.wire.codec import column_label
 from has_control.wire.topics import FLOAT64_ARRAY, MEASURED_RUN_TOPICS, MISSED, MISSED_COLUMNS
 from has_control.common.errors import HasControlError
 from has_control.config import build_config, config_parameters
-from has_control.core.episode import EpisodeArrays
+from has_control.core.episode import Col, EpisodeArrays
 from has_control.core.reference import reference
 from has_control.nodes.plant_node import PREFIXES, PlantNode
 from has_control.nodes.recorder import Recorder
@@ -103,95 +103,137 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         if live is not None and announce is not None:
             announce(f"serving live on ws://127.0.0.1:{live.port} (Foxglove: open a WebSocket connection; "
                      "layout config/foxglove/has_control.json)")
-        params = _overrides(cfg)
-        n = cfg.episode.samples
-        measured = cfg.noise.added_by == "plant"      # the controller reads readings: the truth is the plant's
-        recorder = executor = None
-        nodes: list = []
+        stack = _Composed(namespace=namespace)
         interrupted: list = []
         try:
-            if record is not None:
-                recorder = Recorder(namespace=namespace, subscribe=False, process=True,
-                                    topics=MEASURED_RUN_TOPICS if measured else None)
-                recorder.open(record, cfg)
-            tap = tee(recorder and recorder.sink, live and live.sink)
-            managed = Parameter("autostart", value=False)           # the transitions are driven here
-            plant = PlantNode(namespace=namespace, context=context, tap=tap, parameter_overrides=_plant_parameters(
-                params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
-                           Parameter("mode", value="realtime" if realtime else "lockstep"), managed])
-            nodes.append(plant)
-            internals = publish_internals or record is not None
-            controller = ControllerNode(namespace=namespace, context=context, tap=tap, parameter_overrides=params + [
-                Parameter("publish_internals", value=internals), managed])
-            nodes.append(controller)
-            for node in (plant, controller):     # unconfigured -> inactive -> active
-                _bring_up(node)
-            controller.record_trace(n)
-            if realtime or measured:
-                plant.log = []                 # the true state and the command each sample ran with
-            executor = EventsExecutor(context=context)
-            for node in nodes:
-                executor.add_node(node)
-            _wait_for_match(executor, plant, controller)
+            stack.compose(cfg, context, record, live, realtime, priority, publish_internals)
             if live is not None and foxglove_wait > 0:
                 if announce is not None:
                     announce(f"waiting up to {foxglove_wait:g} s for a Foxglove client")
                 live.wait_for_client(foxglove_wait)
-            plant.stop_on_conflict = True        # a run with a stranger in it is over: fail it now
-
-            def stop_if_conflicts() -> None:
-                if controller.conflicts:
-                    plant.finished = True
-            gc.collect()
-            gc.disable()
-            try:
-                _stop_on_signals(plant, interrupted)
-                started = time.perf_counter()
-                plant.start()
-                if realtime:
-                    def each_second(st) -> None:
-                        stop_if_conflicts()
-                        if progress is not None:
-                            progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))
-                    stats = plant.run_realtime(executor, on_second=each_second)
-                    paced, missed_at = stats.as_dict(), stats.missed_at
-                    if recorder is not None:
-                        recorder.add(MISSED, FLOAT64_ARRAY, missed_messages(stats, plant.log, cfg.episode.step))
-                else:
-                    paced, missed_at = None, []
-                    _spin_lockstep(executor, plant, n, timeout, progress, stop_if_conflicts)
-                loop_seconds = time.perf_counter() - started
-            finally:
-                gc.enable()
-                _stop_on_signals(None, None)
+            loop = stack.run(cfg, realtime, timeout, progress, interrupted)
         finally:                                 # a clean bag and no nodes left, whatever happened
-            closing = time.perf_counter()
-            bag = recorder.close() if recorder is not None else None
-            close_seconds = time.perf_counter() - closing
-            if executor is not None:
-                executor.shutdown()
-            for node in nodes:
-                node.destroy_node()
+            bag, close_seconds = stack.close()
         if interrupted:
             raise KeyboardInterrupt              # after the bag is closed: the caller says "interrupted"
-        if realtime or measured:
+        return stack.result(cfg, loop, bag, close_seconds, time.perf_counter() - t0)
+
+
+@dataclass
+class _Loop:
+    """What one run of the loop measured: the pacing figures (None in lock-step),
+    the samples missed, and the loop's wall time [s]."""
+
+    paced: dict | None
+    missed_at: list
+    seconds: float
+
+
+@dataclass
+class _Composed:
+    """Plant and controller composed in this process around one executor, with
+    the recorder: built by :meth:`compose`, run by :meth:`run`, closed by
+    :meth:`close` whatever happened, read by :meth:`result`."""
+
+    namespace: str
+    plant: PlantNode | None = None
+    controller: ControllerNode | None = None
+    executor: EventsExecutor | None = None
+    recorder: Recorder | None = None
+    nodes: list = field(default_factory=list)
+    measured: bool = False
+
+    def compose(self, cfg: Config, context, record, live, realtime: bool, priority: int,
+                publish_internals: bool) -> None:
+        """The recorder, both nodes (brought up: unconfigured -> inactive -> active)
+        and the executor, matched to each other."""
+        params, n = _overrides(cfg), cfg.episode.samples
+        self.measured = cfg.noise.added_by == "plant"   # the controller reads readings: the truth is the plant's
+        if record is not None:
+            self.recorder = Recorder(namespace=self.namespace, subscribe=False, process=True,
+                                     topics=MEASURED_RUN_TOPICS if self.measured else None)
+            self.recorder.open(record, cfg)
+        tap = tee(self.recorder and self.recorder.sink, live and live.sink)
+        managed = Parameter("autostart", value=False)           # the transitions are driven here
+        self.plant = PlantNode(namespace=self.namespace, context=context, tap=tap, parameter_overrides=(
+            _plant_parameters(params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
+                                         Parameter("mode", value="realtime" if realtime else "lockstep"), managed]))
+        self.nodes.append(self.plant)
+        internals = publish_internals or record is not None
+        self.controller = ControllerNode(namespace=self.namespace, context=context, tap=tap, parameter_overrides=(
+            params + [Parameter("publish_internals", value=internals), managed]))
+        self.nodes.append(self.controller)
+        for node in (self.plant, self.controller):
+            _bring_up(node)
+        self.controller.record_trace(n)
+        if realtime or self.measured:
+            self.plant.log = []                 # the true state and the command each sample ran with
+        self.executor = EventsExecutor(context=context)
+        for node in self.nodes:
+            self.executor.add_node(node)
+        _wait_for_match(self.executor, self.plant, self.controller)
+
+    def run(self, cfg: Config, realtime: bool, timeout: float, progress, interrupted: list) -> _Loop:
+        """One episode, lock-step or paced, with the collector off and SIGINT/SIGTERM
+        ending it at the next sample; a conflict (a stranger on the topics) ends it too."""
+        plant, controller, n = self.plant, self.controller, cfg.episode.samples
+        plant.stop_on_conflict = True        # a run with a stranger in it is over: fail it now
+
+        def stop_if_conflicts() -> None:
+            if controller.conflicts:
+                plant.finished = True
+        gc.collect()
+        gc.disable()
+        try:
+            _stop_on_signals(plant, interrupted)
+            started = time.perf_counter()
+            plant.start()
+            if realtime:
+                def each_second(st) -> None:
+                    stop_if_conflicts()
+                    if progress is not None:
+                        progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))
+                stats = plant.run_realtime(self.executor, on_second=each_second)
+                if self.recorder is not None:
+                    self.recorder.add(MISSED, FLOAT64_ARRAY, missed_messages(stats, plant.log, cfg.episode.step))
+                return _Loop(stats.as_dict(), stats.missed_at, time.perf_counter() - started)
+            _spin_lockstep(self.executor, plant, n, timeout, progress, stop_if_conflicts)
+            return _Loop(None, [], time.perf_counter() - started)
+        finally:
+            gc.enable()
+            _stop_on_signals(None, None)
+
+    def close(self) -> tuple[Path | None, float]:
+        """Close the bag (its time [s] measured) and destroy the nodes."""
+        closing = time.perf_counter()
+        bag = self.recorder.close() if self.recorder is not None else None
+        close_seconds = time.perf_counter() - closing
+        if self.executor is not None:
+            self.executor.shutdown()
+        for node in self.nodes:
+            node.destroy_node()
+        return bag, close_seconds
+
+    def result(self, cfg: Config, loop: _Loop, bag, close_seconds: float, seconds: float) -> StackRun:
+        """The run's trace (the controller's, or the plant's true states where the
+        plant logged them) and score; a run with a stranger in it is refused."""
+        plant, controller, n = self.plant, self.controller, cfg.episode.samples
+        if plant.log is not None:                # realtime or measured: the plant logged its true states
             trace = _plant_trace(plant.log, controller.trace, cfg)
             diverged = plant.diverged or len(trace) < n
         else:
-            answered = int(np.count_nonzero(~np.isnan(controller.trace[:, 0])))
+            answered = int(np.count_nonzero(~np.isnan(controller.trace[:, Col.t])))
             trace = controller.trace[:answered].copy()
-            diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, 6]))
-        score = score_arrays(trace[:, 7], trace[:, 6], cfg.episode.as_array(), diverged=diverged)
+            diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, Col.u]))
+        score = score_arrays(trace[:, Col.e1], trace[:, Col.u], cfg.episode.as_array(), diverged=diverged)
         conflicts = (plant.conflicts, controller.conflicts)
-        figures = loop_figures(plant.sample, loop_seconds, cfg.episode.step, plant.failsafe_events, paced)
-        run = StackRun(trace, score, time.perf_counter() - t0, plant.failsafe_events, bag, figures, missed_at,
-                       close_seconds)
         if any(conflicts):
             raise HasControlError(
-                f"namespace '{namespace or '/'}': another node publishes on this loop's topics "
+                f"namespace '{self.namespace or '/'}': another node publishes on this loop's topics "
                 f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
-        return run
+        figures = loop_figures(plant.sample, loop.seconds, cfg.episode.step, plant.failsafe_events, loop.paced)
+        return StackRun(trace, score, seconds, plant.failsafe_events, bag, figures, loop.missed_at, close_seconds)
 
 
 def normalise_namespace(namespace: str | None) -> str:
@@ -266,7 +308,7 @@ def missed_messages(stats, log: list[tuple], step: float) -> list[bytes]:
     missed = samples(stats.missed_spans)
     if not missed.size:
         return []
-    ran = {int(row[0]): float(row[5]) for row in log}                # sample -> u it ran with
+    ran = {int(row[0]): float(row[-1]) for row in log}               # sample -> u it ran with (the last field)
     rows = np.column_stack([missed * step, [ran.get(int(i), np.nan) for i in missed],
                             np.isin(missed, samples(stats.failsafe_spans)).astype(float)])
     return cdr.encode_float64_arrays(rows, column_label(MISSED_COLUMNS))
@@ -281,8 +323,9 @@ def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndar
     t = rows[:, 0] * cfg.episode.step
     rp = EpisodeArrays.from_config(cfg).reference
     x1d = np.array([reference(rp, ti)[0] for ti in t])
-    trace[:, 0], trace[:, 1], trace[:, 2:6], trace[:, 6] = t, x1d, rows[:, 1:5], rows[:, 5]
-    trace[:, 7] = x1d - rows[:, 1]                             # SPEC §3: e1 = x1d − x1
+    trace[:, Col.t], trace[:, Col.x1d], trace[:, Col.u] = t, x1d, rows[:, 5]
+    trace[:, Col.y:Col.P2 + 1] = rows[:, 1:5]                  # y, ẏ, P1, P2
+    trace[:, Col.e1] = x1d - rows[:, 1]                        # SPEC §3: e1 = x1d − x1
     return trace
 
 
