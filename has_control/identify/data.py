@@ -80,7 +80,7 @@ def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
         empty = [t for t, m in ((st, states), (cm, commands)) if not m]
         raise IdentificationError(f"{path}: no messages on {', '.join(empty)}")
     cfg = bag.config(overrides)
-    step_ns = int(round(cfg.episode.step * 1e9))
+    step_ns = cfg.episode.step_ns
     names, pos, vel, eff = _joint_states(states, f"{path}: {st}")
     if names != STATE_NAMES or pos.shape[1] != 3 or vel.shape[1] != 3 or eff.shape[1] != 3:
         raise IdentificationError(f"{path}: {st}: joints {names} are not this actuator's {STATE_NAMES} "

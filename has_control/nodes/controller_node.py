@@ -251,7 +251,7 @@ class ControllerNode(LifecycleNode):
         self.k = cfg.gains.as_tuple()
         self._gains = np.array(self.k)
         self.dt = cfg.episode.step
-        self.step_ns = int(round(self.dt * 1e9))
+        self.step_ns = cfg.episode.step_ns
 
     def reset(self) -> None:
         """Estimates back to â(0); the next sample starts a new run."""

@@ -148,7 +148,7 @@ class PlantNode(LifecycleNode):
         self.actuator = cfg.plant.actuator(cfg.actuator)      # this plant's own parameters
         self.ap = cfg.plant.as_array(cfg.actuator)            # ... and its valve
         self.step_s = cfg.episode.step
-        self.step_ns = int(round(self.step_s * 1e9))
+        self.step_ns = cfg.episode.step_ns
         self.y_limit = cfg.episode.y_limit
         self.samples = int(self.get_parameter("samples").value)
         self.timeout = float(self.get_parameter("command_timeout").value)

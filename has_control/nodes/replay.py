@@ -119,7 +119,7 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
     except (BagError, IndexError):
         pass                                          # the stored parameters' gains
     n = min(len(states), len(recorded_u))
-    step_ns = int(round(cfg.episode.step * 1e9))
+    step_ns = cfg.episode.step_ns
     stamps = cdr.stamps_ns([d for _, d in states[:n]])
     off = np.flatnonzero(stamps % step_ns)
     if off.size:                      # the controller would refuse each one and time out on it

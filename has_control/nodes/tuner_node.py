@@ -42,6 +42,7 @@ import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +58,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from has_control.bag import BagError, score_bag
 from has_control.common.errors import ConfigError, HasControlError
 from has_control.core.episode import simulate
+from has_control.core.params import Config
 from has_control.tuning.tuner import Tuning, load_tuning, robust_tuning, tuning_from_parameters, tuning_parameters
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 from has_control.nodes.recorder import Recorder
@@ -188,8 +190,10 @@ class Lane:
                     f"{self.controller_name}/get_parameters")
         return [v.double_value for v in res.values]
 
-    def run(self, gains, cfg, bag: Path, timeout: float, writer=None, prefix: str = "") -> float:
-        """One episode with ``gains`` recorded to ``bag`` (or into ``writer``); its J from the bag."""
+    def run(self, gains, cfg, bag: Path, timeout: float, writer=None, prefix: str = "") -> float | None:
+        """One episode with ``gains`` recorded to ``bag``, and its J from the bag;
+        recorded into ``writer`` (another bag, still open) instead: None, the
+        caller scores it once that bag is closed."""
         reason = self.set_gains(gains)
         if reason is not None:
             self.logger.warning(f"{self.controller_name} rejected k = {tuple(gains)}: {reason}; scored +inf")
@@ -206,7 +210,7 @@ class Lane:
             time.sleep(0.001)
         if writer is not None:
             self.recorder.detach()
-            return math.nan                         # scored by the caller once the bag is closed
+            return None                             # scored by the caller once the bag is closed
         self.recorder.close()
         if not finished:
             self._trigger(self.plant_reset)
@@ -219,6 +223,16 @@ class Lane:
             self.logger.warning(f"{exc}; scored +inf")
             return math.inf
         return score.J
+
+
+@dataclass
+class _SessionState:
+    """What the session's runner tells the node as it goes: the configuration it
+    tunes on (once the objective is made) and whether plant/controller lanes
+    are up (the batch evaluator runs without them)."""
+
+    cfg: Config | None = None
+    lanes: bool = True
 
 
 class TunerNode(Node):
@@ -352,16 +366,16 @@ class TunerNode(Node):
         scratch = Path(tempfile.mkdtemp(prefix="has_control_tuner_"))
         t0 = time.perf_counter()
         every = max(1, int(self.get_parameter("log_every").value))
-        used: dict = {}
+        session = _SessionState()
 
         def lanes_up() -> bool:                   # with evaluator batch, lanes are optional
-            return used.get("lanes", True)
+            return session.lanes
 
         def make_objective(cfg):
-            used["cfg"] = cfg
+            session.cfg = cfg
             graph = self.evaluator == "graph"
-            used["lanes"] = self.wait_for_lanes(None if graph else min(5.0, self.lane_timeout), required=graph)
-            if not used["lanes"]:
+            session.lanes = self.wait_for_lanes(None if graph else min(5.0, self.lane_timeout), required=graph)
+            if not session.lanes:
                 log.info("no plant/controller lanes found: the batch evaluator alone, validation in-process; "
                          "the best gains are set on no controller")
                 return None
@@ -411,7 +425,7 @@ class TunerNode(Node):
             out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes] if lanes_up() else [])
             if not lanes_up():
                 if validate:
-                    validation = simulate(used["cfg"], best).score
+                    validation = simulate(session.cfg, best).score
                     out["validation"] = validation.as_json()
                     out["validation_bag"] = None
                     log.info(f"validated k = ({best[0]:.2f}, {best[1]:.2f}, {best[2]:.2f}) in-process: "
@@ -428,7 +442,7 @@ class TunerNode(Node):
                 bag = run.bag
                 if bag is None:
                     bag = scratch / "validation"
-                    self.lanes[0].run(best, used["cfg"], bag, timeout)
+                    self.lanes[0].run(best, session.cfg, bag, timeout)
                 validation, _ = score_bag(bag, on_warning=log.warning)
                 out["validation"] = validation.as_json()
                 out["validation_bag"] = str(bag) if run.bag else None
