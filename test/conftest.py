@@ -39,3 +39,28 @@ def pytest_collection_modifyitems(config, items):
     if slow:
         config.hook.pytest_deselected(items=slow)
         items[:] = [i for i in items if not i.get_closest_marker("slow")]
+
+
+def stopped_session(directory, particles: int, iterations: int, stop_after: int = 2, horizon: float = 1.2):
+    """A pso-cp-tvac session in ``directory`` of ``particles`` x ``iterations``,
+    stopped (its bag closed) after ``stop_after`` iterations, as a kill leaves it."""
+    from has_control.config import with_horizon
+    from has_control.core.params import Config
+    from has_control.tuning.session import Session
+    from has_control.tuning.tuner import load_tuning, tune
+    cfg = with_horizon(Config(), horizon)
+    tuning = load_tuning().replace(variant="pso-cp-tvac", particles=particles, iterations=iterations)
+    session = Session(directory, tuning, cfg)
+
+    class Stop(Exception):
+        pass
+
+    def each(sw):
+        session.record(sw)
+        if sw.iteration == stop_after:
+            raise Stop
+    with pytest.raises(Stop):
+        tune(cfg, tuning, callback=each)
+    session.close()
+    session.release()
+    return directory

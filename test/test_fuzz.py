@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import stopped_session
 
 from has_control.bag import STRING, BagWriter, describe, read_bag, recorded_run
 from has_control.config import CONFIG_DIR, load_config
@@ -192,26 +193,7 @@ def test_fuzz_metadata_custom_data(metadata_bag, tmp_path):
 @pytest.fixture(scope="module")
 def session_records(tmp_path_factory):
     """The messages of a session of 2 iterations of 3 particles (stopped after them)."""
-    from has_control.config import with_horizon
-    from has_control.core.params import Config
-    from has_control.tuning.session import Session
-    from has_control.tuning.tuner import tune
-    cfg = with_horizon(Config(), 1.2)
-    tuning = load_tuning().replace(variant="pso-cp-tvac", particles=3, iterations=4)
-    d = tmp_path_factory.mktemp("fuzzsession") / "s"
-    session = Session(d, tuning, cfg)
-
-    class Stop(Exception):
-        pass
-
-    def each(sw):
-        session.record(sw)
-        if sw.iteration == 2:
-            raise Stop
-    with pytest.raises(Stop):
-        tune(cfg, tuning, callback=each)
-    session.close()
-    session.release()
+    d = stopped_session(tmp_path_factory.mktemp("fuzzsession") / "s", particles=3, iterations=4)
     return read_bag(d / "session").messages
 
 

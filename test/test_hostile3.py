@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import stopped_session
 import yaml
 
 from has_control.bag import PARAMETERS_KEY, BagError, BagWriter, parameters_json, read_bag, write_trace
@@ -407,25 +408,7 @@ def test_the_controller_builds_a_new_road_off_its_executor(context, monkeypatch)
 @pytest.fixture(scope="module")
 def session3(tmp_path_factory):
     """A session of 3 iterations of 4 particles, stopped (bag closed) after 2."""
-    from has_control.tuning.session import Session
-    from has_control.tuning.tuner import load_tuning, tune
-    cfg = with_horizon(Config(), 1.2)
-    tuning = load_tuning().replace(variant="pso-cp-tvac", particles=4, iterations=3)
-    d = tmp_path_factory.mktemp("sessions") / "s"
-    session = Session(d, tuning, cfg)
-
-    class Stop(Exception):
-        pass
-
-    def each(sw):
-        session.record(sw)
-        if sw.iteration == 2:
-            raise Stop
-    with pytest.raises(Stop):
-        tune(cfg, tuning, callback=each)
-    session.close()
-    session.release()
-    return d
+    return stopped_session(tmp_path_factory.mktemp("sessions") / "s", particles=4, iterations=3)
 
 
 def _rewrite(src, dst, topic, index, edit, copy=False):

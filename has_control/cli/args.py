@@ -43,19 +43,27 @@ def load(args) -> Config:
     return with_horizon(load_config(args.config or []), args.duration)
 
 
-def at_least(low: float, kind: type = float):
-    """An argparse type: a finite number (``kind`` int: a whole number) >= ``low``."""
+def number(low: float = -math.inf, high: float = math.inf, kind: type = float):
+    """An argparse type: a finite number (``kind`` int: a whole number) in [``low``, ``high``]."""
     expected = "a whole number" if kind is int else "a number"
+    where = (f">= {low:g}" if high == math.inf else f"<= {high:g}" if low == -math.inf
+             else f"in {low:g} .. {high:g}")
 
     def parse(text: str):
         try:
             v = kind(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{text!r}: expected {expected}") from None
-        if not ((kind is int or math.isfinite(v)) and v >= low):
-            raise argparse.ArgumentTypeError(f"{text!r}: must be {expected} >= {low:g}")
+        if not ((kind is int or math.isfinite(v)) and low <= v <= high):
+            raise argparse.ArgumentTypeError(f"{text!r}: must be {expected}"
+                                             + ("" if (low, high) == (-math.inf, math.inf) else f" {where}"))
         return v
     return parse
+
+
+def at_least(low: float, kind: type = float):
+    """An argparse type: a finite number (``kind`` int: a whole number) >= ``low``."""
+    return number(low, kind=kind)
 
 
 positive_int = at_least(1, int)

@@ -5,35 +5,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 
 from has_control.cli.args import (add_config, add_duration, add_json, batch, check_outputs, dask_spec, figure_path,
-                                  gains_arg, load)
+                                  gains_arg, load, number)
 from has_control.core.params import PAPER_TUNED_GAINS
 from has_control.tuning.landscape import NAMES, slices
 from has_control.tuning.tuner import load_tuning, make_objective, robust_tuning
 
 MAX_POINTS = 300                 # a side of a slice's grid: 3 x 300^2 = 270 000 episodes at most
-
-
-def _side(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number") from None
-    if not 3 <= n <= MAX_POINTS:
-        raise argparse.ArgumentTypeError(f"{text!r}: must be 3 .. {MAX_POINTS}")
-    return n
-
-
-def _fraction(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a number") from None
-    if not (math.isfinite(v) and 0.0 <= v <= 10.0):
-        raise argparse.ArgumentTypeError(f"{text!r}: must be 0 .. 10 (a fraction of the range)")
-    return v
 
 
 HELP = "J over 2-D slices of the gain space: heatmaps, bound and minima marked"
@@ -42,8 +21,9 @@ HELP = "J over 2-D slices of the gain space: heatmaps, bound and minima marked"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--point", nargs=3, metavar=("K1", "K2", "K3"),
                    help="the slices pass through these gains [1/s] (default: the paper's tuned 656.11 656.13 656.14)")
-    p.add_argument("--points", type=_side, default=40, metavar="N", help="grid points per side (default 40)")
-    p.add_argument("--beyond", type=_fraction, default=0.25, metavar="F",
+    p.add_argument("--points", type=number(3, MAX_POINTS, int), default=40, metavar="N",
+                   help="grid points per side (default 40)")
+    p.add_argument("--beyond", type=number(0.0, 10.0), default=0.25, metavar="F",
                    help="extend each slice past the upper bound by F x the range (default 0.25)")
     add_config(p, "ros__parameters YAML (episode, swarm.lower/upper: the box; repeatable)")
     add_duration(p)

@@ -9,41 +9,20 @@ read and checked before anything is drawn; bad input is one line, exit 2.
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
+from has_control.cli.args import figure_path, number
 from has_control.common.errors import HasControlError
 from has_control.common.files import check_output
 
 HELP = "recorded runs (bags) as one figure: position, error, valve, pressures, estimates, gains"
 
 
-def _figure_file(text: str) -> str:
-    """An argparse type: a file whose suffix matplotlib writes (png, pdf, svg, ...)."""
-    # lazy: matplotlib takes ~0.5 s to load and only this check and the drawing need it
-    from has_control.plots.style import figure_format
-    try:
-        figure_format(text)
-    except HasControlError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
-
-
-def _seconds(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a time in seconds") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite time in seconds")
-    return v
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bags", nargs="+", metavar="BAG", help="bag directory or .mcap file (several: overlaid)")
-    p.add_argument("--out", type=_figure_file, metavar="FILE.png",
+    p.add_argument("--out", type=figure_path, metavar="FILE.png",
                    help="figure file, .png, .pdf or .svg (default: the first bag's name .png, here)")
-    p.add_argument("--window", nargs=2, type=_seconds, metavar=("A", "B"), help="plot only A <= t <= B [s]")
+    p.add_argument("--window", nargs=2, type=number(), metavar=("A", "B"), help="plot only A <= t <= B [s]")
     p.add_argument("--label", action="append", metavar="NAME", help="a legend name for each BAG, in order")
     p.add_argument("--title", metavar="TEXT", help="the figure's title")
     p.add_argument("--config", action="append", metavar="FILE",
