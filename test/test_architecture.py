@@ -142,6 +142,7 @@ def _loaded_by(modules, banned) -> str:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
 
 
+@pytest.mark.system
 def test_inner_wings_load_no_ros_and_no_bags():
     for wing, banned in BANNED.items():
         modules = [m for m, w, p in _modules() if w == wing and p.name != "__main__.py"]

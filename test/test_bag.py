@@ -80,6 +80,7 @@ def test_score_from_the_bag_equals_the_in_process_score(recorded):
     np.testing.assert_array_equal(rec.y, ref["y"])
 
 
+@pytest.mark.system
 def test_cli_score_and_bag_info(recorded, tmp_path):
     d, _, _ = recorded
     r = cli("score", d, "--json")

@@ -30,6 +30,7 @@ def test_diverged_run_prints_inf_as_string():
     assert out["J"] == "inf" and out["diverged"] is True
 
 
+@pytest.mark.system
 def test_trace_and_plot_files(tmp_path):
     csv, png = tmp_path / "t.csv", tmp_path / "p.png"
     r = run("simulate", "--duration", "1.5", "--trace", str(csv), "--plot", str(png))

@@ -92,6 +92,7 @@ def _fuzz(seeds: list[bytes], check, tmp_path, name: str, seed: int, cases: int,
     return counts
 
 
+@pytest.mark.system
 def test_fuzz_the_config_loader(tmp_path):
     seeds = [p.read_bytes() for p in sorted(CONFIG_DIR.glob("*.yaml"))]
 
@@ -123,6 +124,7 @@ def small_bags(tmp_path_factory):
     return out
 
 
+@pytest.mark.system
 def test_fuzz_the_bag_reader(small_bags, tmp_path, capsys):
     def check(path):
         bag = read_bag(path, on_warning=lambda m: None)
@@ -158,6 +160,7 @@ def metadata_bag(tmp_path_factory):
     return d
 
 
+@pytest.mark.system
 def test_fuzz_metadata_custom_data(metadata_bag, tmp_path):
     """The fuzzed bytes are the parameters' JSON (most cases) or the whole
     custom_data mapping's YAML, in an otherwise intact metadata.yaml."""

@@ -190,11 +190,13 @@ def test_ctrl_c_at_the_terminal_while_dask_gathers_is_one_line(tmp_path):
     (["tune", "--variant", "pso-cp-tvac", "--particles", "80", "--iterations", "2000"], 0.3),      # while loading
     (["tune", "--variant", "pso-cp-tvac", "--particles", "80", "--iterations", "2000"], 6.0),      # while tuning
 ])
+@pytest.mark.system
 def test_sigterm_is_one_line_and_130(argv, delay):
     rc, err = _signalled(argv, signal.SIGTERM, delay)
     assert rc == 130 and err.strip().splitlines() == ["has-control: interrupted"], err
 
 
+@pytest.mark.system
 def test_sigterm_leaves_a_session_that_resumes(tmp_path):
     out = tmp_path / "t"
     rc, err = _signalled(["tune", "--variant", "pso-cp-tvac",
@@ -469,6 +471,7 @@ def test_hand_edited_session_settings_are_one_line(session3, tmp_path, capsys, e
     ("/tuner/iteration", lambda r: dict(r, positions=r["positions"][:2], costs=r["costs"][:2])),
     ("/tuner/iteration", lambda r: json.dumps(dict(r, costs="DEEP")).replace('"DEEP"', _deep())),
 ])
+@pytest.mark.system
 def test_stored_iterations_that_do_not_fit_the_session_are_damaged_ones(session3, tmp_path, capsys, topic, edit):
     d = _rewrite(session3, tmp_path / "s", topic, 1, edit)           # the second iteration's
     rc = main(["tune", "--resume", str(d), "--json"])
@@ -477,6 +480,7 @@ def test_stored_iterations_that_do_not_fit_the_session_are_damaged_ones(session3
     assert "resuming from iteration 1, the last good one" in err, err
 
 
+@pytest.mark.system
 def test_a_stored_result_without_its_keys_is_not_used(tmp_path, capsys):
     from has_control.tuning.session import RESULT, RESULT_FILE
     done = tmp_path / "done"

@@ -199,6 +199,7 @@ def test_bit_flips_over_a_session_bag_resume_to_the_same_gains_or_stop_in_one_li
     print(f"session bag: {len(positions)} flips over {len(src)} bytes: {outcome}")
 
 
+@pytest.mark.system
 def test_a_damaged_iteration_falls_back_to_the_previous_good_one(session_dir, tmp_path, capsys):
     from has_control.tuning.session import ITERATION
     d, full = session_dir

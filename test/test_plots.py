@@ -241,6 +241,7 @@ def test_a_bag_from_another_recorder_plots_on_its_own_grid(recorded, tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+@pytest.mark.system
 def test_a_tuner_sessions_validation_bag_and_the_tune_figures(tmp_path):
     out = tmp_path / "tuned"
     r = cli("tune", "--variant", "pso-cp-tvac",

@@ -89,6 +89,7 @@ def test_a_record_the_replay_does_not_ask_for_is_refused():
         restore(state)
 
 
+@pytest.mark.system
 def test_a_session_killed_mid_way_resumes_to_the_same_result(tmp_path):
     args = ["tune", "--evaluations", 2500, "--duration", 1.5, "--json"]
     full = cli(*args)
@@ -132,6 +133,7 @@ def test_tuning_on_dask_gives_the_local_bits():
 
 # --- bound diagnostics ---------------------------------------------------------------------------
 
+@pytest.mark.system
 def test_the_nominal_optimum_is_the_bounds_and_the_cli_says_so(tmp_path):
     """Around the best gains in the box, k1 ends on its upper bound 1200, and J
     still falls beyond it: the warning of issue #21, in the text and the JSON."""
@@ -152,6 +154,7 @@ def test_the_nominal_optimum_is_the_bounds_and_the_cli_says_so(tmp_path):
     assert "warning: k1 = 1200 is the upper bound and J still falls beyond it" in text.stdout
 
 
+@pytest.mark.system
 def test_over_the_shipped_scenarios_the_optimum_is_inside_and_nothing_is_said():
     """The robust objective of issue #21 (CVaR 0.2 over config/scenarios.yaml: drifting
     plants with valve lag and sensor noise; 2 s episodes) has its optimum inside the

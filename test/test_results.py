@@ -37,6 +37,7 @@ def finished(tmp_path_factory):
     return d, json.loads((d / "tune.json").read_text())
 
 
+@pytest.mark.system
 def test_tune_out_never_replaces_a_session_without_force(finished, tmp_path, capsys):
     d, result = finished
     copy = tmp_path / "s"
@@ -83,6 +84,7 @@ def test_a_second_resume_on_a_locked_session_is_refused(finished, tmp_path, caps
     assert (copy / "session").is_dir() and (copy / "tune.json").exists()   # nothing touched
 
 
+@pytest.mark.system
 @pytest.mark.parametrize("cut", ["no-tune.json", "no-figures-no-tune.json", "bag-cut-in-finish"])
 def test_resume_finishes_a_session_whose_final_writes_were_interrupted(finished, tmp_path, capsys, cut):
     d, result = finished

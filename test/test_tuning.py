@@ -51,6 +51,7 @@ def test_short_tuning_improves_on_its_first_iteration_and_beats_manual_gains():
     assert res.result.nfev == 16 * 8
 
 
+@pytest.mark.system
 def test_tune_cli_json_is_reproducible_and_has_the_documented_keys():
     args = [sys.executable, "-m", "has_control.cli", "tune", "--variant", "pso-cp-tvac",
             "--seed", "1", "--particles", "8", "--iterations", "4", "--json"]
