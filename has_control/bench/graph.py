@@ -34,7 +34,7 @@ from has_control.nodes.runtime import CONTROL_QOS, spin
 from has_control.nodes.stack import run_stack
 from has_control.wire.topics import COMMAND, COMMAND_LAYOUT, COMMAND_NAMES, RUN_TOPICS, STATE, STATE_LAYOUT, STATE_NAMES
 
-STEP = 0.0003
+STEP = Config().episode.step           # [s], the reference configuration's
 
 
 def _env(domain: int) -> dict:
@@ -177,7 +177,7 @@ def _bare_paced_here(samples: int, domain: int | None, priority: int = 50, warm_
     import rclpy
     from rclpy.experimental import EventsExecutor
 
-    step_ns = int(round(STEP * 1e9))
+    step_ns = Config().episode.step_ns
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=domain)
     echo = subprocess.Popen([sys.executable, "-m", "has_control.bench.graph", "--stamp-echo"],

@@ -26,7 +26,7 @@ from has_control.core.params import Config
 from has_control.core.scenarios import parse_aggregate
 from has_control.tuning.methods import new_optimiser
 from has_control.tuning.restarts import RestartSettings
-from has_control.tuning.swarm import SwarmSettings
+from has_control.tuning.swarm import SwarmSettings, drive
 from has_control.tuning.tuner import Tuning, make_objective
 from has_control.common.files import write_atomic
 
@@ -93,10 +93,10 @@ def run_method(name: str, objective, budget: int, seed: int, bounds=BOX) -> Trac
     try:
         if name == "cma-restarts":
             opt = new_optimiser(name, bounds, restarts=RestartSettings(evaluations=budget), seed=seed)
-            _drive(opt, rec)
+            drive(opt, rec)
         elif name in ("pso", "pso-cp", "pso-cp-tvac"):
             settings = SwarmSettings(variant=name, particles=80, iterations=max(1, budget // 80))
-            _drive(new_optimiser(name, bounds, swarm=settings, seed=seed), rec)
+            drive(new_optimiser(name, bounds, swarm=settings, seed=seed), rec)
         elif name == "cma-ipop":
             rng = np.random.default_rng(seed)
 
@@ -113,11 +113,6 @@ def run_method(name: str, objective, budget: int, seed: int, bounds=BOX) -> Trac
     except _Spent:
         pass
     return rec.trace
-
-
-def _drive(opt, rec: Recorder) -> None:
-    while not opt.done:
-        opt.tell(rec(opt.ask()))
 
 
 #: Methods, and whether a run at the largest budget serves the smaller ones.

@@ -66,11 +66,6 @@ def check_method_options(args, method: str) -> None:
                                   + ("" if swarm else "; --variant pso-cp-tvac for the paper's swarm"))
 
 
-def robust(args, cfg, tuning):
-    """``tuning`` with the scenarios of ``--scenarios`` and ``--aggregate`` (checked as the tuner node's)."""
-    return robust_tuning(tuning, cfg, args.scenarios, args.aggregate)
-
-
 def _figures(res, directory: Path) -> None:
     # lazy: matplotlib takes about 1 s to load; only a session with --out draws
     from has_control.plots.figures import plot_convergence, plot_gains
@@ -91,7 +86,7 @@ def run(args) -> int:
         cfg = tuning = None
     else:
         cfg = load(args)
-        tuning = robust(args, cfg, tuning_args(args))
+        tuning = robust_tuning(tuning_args(args), cfg, args.scenarios, args.aggregate)
     progress = Progress()
     try:
         with batch(args) as evaluator:

@@ -16,7 +16,7 @@ import numpy as np
 
 from has_control.common.errors import shown
 from has_control.tuning.restarts import METHOD as RESTARTS, RestartSettings, Restarts
-from has_control.tuning.swarm import VARIANTS, Swarm, SwarmError, SwarmResult, SwarmSettings
+from has_control.tuning.swarm import VARIANTS, Swarm, SwarmError, SwarmResult, SwarmSettings, drive
 
 DEFAULT = RESTARTS
 #: Method name -> one line about it (the choices of ``--variant`` and ``swarm.variant``).
@@ -50,17 +50,6 @@ def restore(state: dict):
     if state.get("method") == RESTARTS:
         return Restarts.from_state(state)
     return Swarm.from_state(state)
-
-
-def drive(optimiser, objective: Callable[[np.ndarray], np.ndarray],
-          callback: Callable[[object], bool | None] | None = None) -> SwarmResult:
-    """Ask, evaluate, tell until the optimiser is done; ``callback(optimiser)``
-    after each batch, True stops."""
-    while not optimiser.done:
-        optimiser.tell(objective(optimiser.ask()))
-        if callback is not None and callback(optimiser):
-            optimiser.stop_reason = optimiser.stop_reason or "stopped by callback"
-    return optimiser.result()
 
 
 def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, method: str = DEFAULT,

@@ -36,7 +36,9 @@ from typing import TYPE_CHECKING, Callable, Iterator
 import numpy as np
 
 from has_control.common.errors import shown
-from has_control.tuning.swarm import IterationRecord, SwarmError, SwarmResult, _check_bounds, record_dict, record_from
+from has_control.tuning.swarm import (
+    IterationRecord, SwarmError, SwarmResult, _check_bounds, drive, record_dict, record_from,
+)
 
 if TYPE_CHECKING:                    # pycma is imported where a search starts (see _search)
     import cma
@@ -300,11 +302,7 @@ def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, seed: int | 
             run = Restarts(bounds, RestartSettings(**options), seed)
         except TypeError as exc:
             raise SwarmError(f"minimize: {exc}") from None
-    while not run.done:
-        run.tell(objective(run.ask()))
-        if callback is not None and callback(run):
-            run.stop_reason = run.stop_reason or "stopped by callback"
-    return run.result()
+    return drive(run, objective, callback)
 
 
 __all__ = ["Restarts", "RestartSettings", "METHOD", "minimize"]

@@ -332,11 +332,18 @@ def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, variant: str
         except TypeError as exc:
             raise SwarmError(f"minimize: {exc}") from None
         swarm = Swarm(bounds, settings, seed)
-    while not swarm.done:
-        swarm.tell(objective(swarm.ask()))
-        if callback is not None and callback(swarm):
-            swarm.stop_reason = swarm.stop_reason or "stopped by callback"
-    return swarm.result()
+    return drive(swarm, objective, callback)
+
+
+def drive(optimiser, objective: Callable[[np.ndarray], np.ndarray],
+          callback: Callable[[object], bool | None] | None = None) -> SwarmResult:
+    """Ask, evaluate, tell until ``optimiser`` (any of the ask/tell methods) is
+    done; ``callback(optimiser)`` after each batch, True stops."""
+    while not optimiser.done:
+        optimiser.tell(objective(optimiser.ask()))
+        if callback is not None and callback(optimiser):
+            optimiser.stop_reason = optimiser.stop_reason or "stopped by callback"
+    return optimiser.result()
 
 
 def _from_json(values) -> list:
