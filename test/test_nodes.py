@@ -258,7 +258,7 @@ def test_killing_the_controller_mid_run_in_realtime_mode(context, domain_id):
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
     cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false"]
     ex = EventsExecutor(context=context)
-    samples = int(8.0 / 0.0003)
+    samples = int(12.0 / 0.0003)                         # room for a restart slowed by the loaded machine
     plant = PlantNode(context=context, parameter_overrides=[
         Parameter("mode", value="realtime"), Parameter("samples", value=samples)])
     plant.log = []
