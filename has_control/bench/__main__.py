@@ -16,7 +16,7 @@ from has_control.bench.evaluator import bench_evaluator
 from has_control.bench.foxglove import bench_foxglove
 from has_control.bench.graph import bench_graph, print_graph
 from has_control.bench.scoring import bench_scoring
-from has_control.bench.tuning import bench_optimiser, bench_paper, bench_scenarios
+from has_control.bench.tuning import bench_optimiser, bench_paper, bench_roads, bench_scenarios
 from has_control.bench.tuners import print_tuners
 
 
@@ -29,7 +29,8 @@ def main(argv=None) -> int:
                     help="run only the evaluator comparison (blocks against the plain loop)")
     ap.add_argument("--graph", action="store_true", help="run only the node-graph table (about a minute)")
     ap.add_argument("--scenarios", action="store_true",
-                    help="run only the scenario scaling: episodes/s on 1, 10 and 100 scenarios")
+                    help="run only the scenario scaling (episodes/s on 1, 10 and 100 scenarios) and a road "
+                         "scenario's time and memory against a sine one's")
     ap.add_argument("--dask", action="store_true",
                     help="run only dask_batch('local:2') against the local batch, 80 x 20 episodes of 10 s, "
                          "Dask's per-task costs and the scaling model (about 30 s)")
@@ -63,6 +64,14 @@ def main(argv=None) -> int:
         for count, run in r["runs"].items():
             print(f"  S = {count:3d}: {run['seconds']:.3f} s, {run['episodes_per_second']:,.0f} episodes/s "
                   f"({run['episodes_per_second'] / base:.2f}x the rate at S = 1)")
+        r = bench_roads(repeats=args.repeats)
+        sine = r["runs"]["sine"]
+        print(f"one {r['horizon']:g} s scenario, {r['particles']} candidates, the road built in the time, "
+              f"best of {args.repeats} alternating: time and reference memory against the sine")
+        for name, run in r["runs"].items():
+            terms = f", {run['terms']} components" if run["terms"] else ""
+            print(f"  {name}{terms}: {run['seconds']:.3f} s ({run['seconds'] / sine['seconds']:.2f}x), "
+                  f"{run['bytes']:,} bytes ({run['bytes'] / sine['bytes']:.1f}x)")
         return 0
     if args.graph:
         print_graph(bench_graph(repeats=args.repeats))

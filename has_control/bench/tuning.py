@@ -1,5 +1,6 @@
 """The optimisers' cost outside the evaluator, the paper experiment run for real,
-and scenario evaluation against the number of scenarios."""
+scenario evaluation against the number of scenarios, and a road scenario
+against a sine one."""
 from __future__ import annotations
 
 import time
@@ -10,7 +11,9 @@ from has_control.bench.timing import BOUNDS, _best_of
 from has_control.config import CONFIG_DIR
 from has_control.core.episode import evaluate, evaluate_configs, threads
 from has_control.config import with_horizon
-from has_control.core.params import Config
+from has_control.core.params import Config, Reference
+from has_control.core.reference import reference_array
+from has_control.core.road import road_terms
 from has_control.config import Scenario, load_scenarios, scenario_configs
 from has_control.tuning.swarm import VARIANTS
 from has_control.tuning.tuner import Tuning, tune
@@ -62,3 +65,37 @@ def bench_scenarios(counts=(1, 10, 100), particles: int = 80, horizon: float = 2
         t = _best_of(repeats, lambda: evaluate_configs(gains, configs))
         out[count] = {"seconds": t, "episodes_per_second": particles * count / t}
     return {"particles": particles, "horizon": horizon, "runs": out}
+
+
+#: The references of :func:`bench_roads`: the sine of the reference
+#: configuration, then roads at the shipped cutoff, near the most components
+#: summed in the kernel, and past it (tabulated).
+ROADS = {"sine": {}, "road, 2 Hz (shipped)": {"kind": "road"}, "road, 6 Hz": {"kind": "road", "cutoff": 6.0},
+         "road, 50 Hz (tabulated)": {"kind": "road", "cutoff": 50.0}}
+
+
+def bench_roads(particles: int = 80, repeats: int = 3) -> dict:
+    """One 10 s scenario of each of :data:`ROADS`, ``particles`` candidates:
+    wall time (a fresh road seed each time, so building the road counts)
+    and the bytes of the reference array, best of ``repeats`` in alternating
+    rounds."""
+    gains = np.random.default_rng(0).uniform(*BOUNDS, size=(particles, 3))
+    seeds = iter(range(1, 1_000_000))
+
+    def config(kwargs):
+        return Config(reference=Reference(**kwargs, seed=next(seeds)) if kwargs else Reference())
+    for kwargs in ROADS.values():
+        evaluate_configs(gains[:2], [config(kwargs)])                 # compile / load the cache
+    best = dict.fromkeys(ROADS, float("inf"))
+    for _ in range(repeats):
+        for name, kwargs in ROADS.items():
+            cfg = config(kwargs)
+            t0 = time.perf_counter()
+            evaluate_configs(gains, [cfg])
+            best[name] = min(best[name], time.perf_counter() - t0)
+    out = {}
+    for name, kwargs in ROADS.items():
+        cfg = config(kwargs)
+        out[name] = {"seconds": best[name], "bytes": reference_array(cfg.reference, cfg.episode).nbytes,
+                     "terms": road_terms(cfg.reference, cfg.episode) if kwargs else 0}
+    return {"particles": particles, "horizon": Config().episode.horizon, "runs": out}

@@ -78,7 +78,7 @@ def check_scenarios(scenarios: Sequence[Scenario], base: Config, where: str) -> 
     """What every scenario set must be, from a file or a session (one check for
     both): at least one and at most :data:`MAX_SCENARIOS`, names unique, only
     world keys (:data:`SCENARIO_PREFIXES`), each a valid configuration over
-    ``base``, their road tables within the memory limit. One line naming
+    ``base``, their roads within the memory limit. One line naming
     ``where``, the scenario and the key."""
     if not scenarios:
         raise ConfigError(f"{where}: no scenarios")

@@ -39,10 +39,12 @@ NOISE_ADDED_BY = {"controller": 0, "plant": 1}
 
 # --- reference array layout -------------------------------------------------
 REF_KIND, REF_AMPLITUDE, REF_OMEGA, REF_OFFSET, REF_T0, REF_RISE, REF_F0, \
-    REF_F1, REF_SWEEP, REF_ROWS, REF_TABLE_STEP = range(11)
-#: Header of the reference array; a tabulated kind (road) follows it with REF_ROWS rows of
-#: (x1d, ẋ1d, ẍ1d, x1d⁽³⁾), one each REF_TABLE_STEP [s].
-N_REFERENCE = 11
+    REF_F1, REF_SWEEP, REF_ROWS, REF_TABLE_STEP, REF_TERMS, REF_FIRST, REF_BIAS = range(14)
+#: Header of the reference array. A road (:mod:`has_control.core.road`) is defined on a grid of
+#: REF_ROWS samples, one each REF_TABLE_STEP [s], and repeats after it; it follows the header
+#: with REF_TERMS components (harmonics REF_FIRST, REF_FIRST + 1, …, two numbers each) summed
+#: in the kernel, or, if REF_TERMS is −1, with REF_ROWS rows of (x1d, ẋ1d, ẍ1d, x1d⁽³⁾).
+N_REFERENCE = 14
 REF_ZERO, REF_SINE, REF_STEP, REF_CHIRP, REF_ROAD = range(5)
 REFERENCE_KINDS = {"zero": REF_ZERO, "sine": REF_SINE, "step": REF_STEP, "chirp": REF_CHIRP, "road": REF_ROAD}
 #: ISO 8608 road classes: displacement PSD Gd(n0) [m³] at n0 = 0.1 cycles/m (the class's geometric mean).
@@ -225,11 +227,11 @@ class Reference:
     seed: int = 0
 
     def as_array(self) -> np.ndarray:
-        """The reference array's header; a tabulated kind (road) needs its
+        """The reference array's header; a road needs its components or its
         table after it: :func:`has_control.core.reference.reference_array`."""
         return np.array([
             float(REFERENCE_KINDS[self.kind]), self.amplitude, self.omega, self.offset,
-            self.t0, self.rise, self.f0, self.f1, self.sweep, 0.0, 0.0,
+            self.t0, self.rise, self.f0, self.f1, self.sweep, 0.0, 0.0, 0.0, 0.0, 0.0,
         ], dtype=np.float64)
 
 

@@ -2,7 +2,7 @@
 
 Kinds (see :class:`has_control.core.params.Reference`): zero, sine (SPEC §4 default,
 0.11·sin 2t), step (septic smooth step, C³), chirp (linear frequency sweep),
-road (an ISO 8608 profile, :mod:`has_control.core.road`, tabulated on the sample
+road (an ISO 8608 profile, :mod:`has_control.core.road`, defined on the sample
 grid and periodic after it).
 """
 from __future__ import annotations
@@ -17,24 +17,21 @@ from numba import njit
 from has_control.common.errors import ConfigError
 from has_control.core.jit import INLINE
 from has_control.core.params import (
-    N_REFERENCE, REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE, REF_ROAD,
-    REF_ROWS, REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP, Episode, Reference,
+    REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE, REF_ROAD, REF_ROWS,
+    REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP, Episode, Reference,
 )
-from has_control.core.road import MAX_ROAD_BYTES, road_bytes, road_table
+from has_control.core.road import MAX_ROAD_BYTES, SUM_TERMS_MAX, road_array, road_at, road_bytes
 
 
 @njit(**INLINE)
 def reference(rp, t):
     """(x1d, ẋ1d, ẍ1d, x1d⁽³⁾) at time t [s] for the reference array rp.
 
-    A tabulated kind (road) is defined on its grid t = i·step: t is rounded
-    to the nearest sample, and the table repeats after its last row."""
+    A road is defined on its grid t = i·step: t is rounded to the nearest
+    sample, and the road repeats after the grid's last sample."""
     kind = int(rp[REF_KIND])
     if kind == REF_ROAD:
-        rows = int(rp[REF_ROWS])
-        i = int(math.floor(t / rp[REF_TABLE_STEP] + 0.5)) % rows
-        k = N_REFERENCE + 4 * i
-        return rp[k], rp[k + 1], rp[k + 2], rp[k + 3]
+        return road_at(rp, int(math.floor(t / rp[REF_TABLE_STEP] + 0.5)) % int(rp[REF_ROWS]))
     a = rp[REF_AMPLITUDE]
     off = rp[REF_OFFSET]
     if kind == REF_SINE:
@@ -82,19 +79,15 @@ _road_cache_lock = threading.Lock()
 
 
 def _road_array(ref: Reference, episode: Episode) -> np.ndarray:
-    """The header and :func:`has_control.core.road.road_table` of (reference,
-    grid), built once while it stays in the cache (least recently used
-    out first). The array is shared: the kernels only read it."""
+    """:func:`has_control.core.road.road_array` of (reference, grid), built
+    once while it stays in the cache (least recently used out first). The
+    array is shared: the kernels only read it."""
     key = (ref, episode)
     with _road_cache_lock:
         if key in _road_cache:
             _road_cache.move_to_end(key)
             return _road_cache[key]
-    table = road_table(ref, episode)
-    head = ref.as_array()
-    head[REF_ROWS] = len(table)
-    head[REF_TABLE_STEP] = episode.step
-    array = np.concatenate([head, table.ravel()])
+    array = road_array(ref, episode)
     with _road_cache_lock:
         _road_cache[key] = array
         total = sum(a.nbytes for a in _road_cache.values())
@@ -111,21 +104,22 @@ def road_cached(ref: Reference, episode: Episode) -> bool:
 
 
 def check_road_memory(pairs, where: str = "scenarios") -> None:
-    """Refuse, before any table is built, road references whose tables
+    """Refuse, before any road array is built, road references whose arrays
     together (distinct (reference, episode) pairs) would take more than
     :data:`has_control.core.road.MAX_ROAD_BYTES`; one line naming ``where``."""
     need = sum(road_bytes(r, e) for r, e in set(pairs))
     if need > MAX_ROAD_BYTES:
         roads = sum(1 for r, _ in set(pairs) if r.kind == "road")
         raise ConfigError(f"{where}: {roads} road references would take {need / 2**20:,.0f} MiB of tables, more "
-                          f"than the limit of {MAX_ROAD_BYTES / 2**20:,.0f} MiB (32 bytes per sample each): "
-                          "fewer road scenarios, a shorter simulation.horizon or a longer simulation.step")
+                          f"than the limit of {MAX_ROAD_BYTES / 2**20:,.0f} MiB (a road of more than "
+                          f"{SUM_TERMS_MAX} components is tabulated, 32 bytes per sample): fewer road scenarios, "
+                          "a lower reference.cutoff, a shorter simulation.horizon or a longer simulation.step")
 
 
 def reference_array(ref: Reference, episode: Episode) -> np.ndarray:
     """The array :func:`reference` reads: the header of ``ref``, and for a
-    road its table on ``episode``'s grid (one period of the profile,
-    :func:`has_control.core.road.road_table`), shared with other callers."""
+    road its components or its table on ``episode``'s grid
+    (:func:`has_control.core.road.road_array`), shared with other callers."""
     if ref.kind != "road":
         return ref.as_array()
     return _road_array(ref, episode)

@@ -18,19 +18,32 @@ uniformly from ``seed``:
 
 (it starts at ``offset``, where the actuator rests). Its derivatives are
 analytic, so x1d⁽³⁾ exists for the back-stepping law, and being periodic in
-T it is defined after the horizon too. It is tabulated once on the sample
-grid (:func:`road_table`, an inverse FFT: O(n log n) for n samples whatever
-the cutoff) and looked up by sample in the kernels, so a road costs what a
-sine does, plus 32 bytes per sample; the tables of one evaluation are
-bounded by :data:`MAX_ROAD_BYTES`, checked before any is built.
+T it is defined after the horizon too. It is defined on the sample grid
+t_i = i·Δt, where component k is sin(2π k i/n + φ_k), and computed one of
+two ways (:func:`road_array` picks by the number of components K):
+
+* **summed in the kernel** (K ≤ :data:`SUM_TERMS_MAX`, which covers the
+  shipped 2 Hz cutoff, 17 components for 10 s): the array holds the K
+  complex amplitudes A_k·e^{iφ_k}, 16 bytes each, and :func:`road_at` sums
+  them at each sample (two sin/cos and K complex products: the harmonics
+  are powers of e^{2πi·i/n}). A 10 s road is 384 bytes, a sine 112.
+* **tabulated** (more components): (x1d, ẋ1d, ẍ1d, x1d⁽³⁾) on the whole
+  grid, an inverse FFT (O(n log n) whatever the cutoff), 32 bytes per
+  sample; the arrays of one evaluation are bounded by
+  :data:`MAX_ROAD_BYTES`, checked before any is built.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+from numba import njit
 
-from has_control.core.params import ROAD_CLASSES, Episode, Reference
+from has_control.core.jit import INLINE, KERNEL
+from has_control.core.params import (
+    N_REFERENCE, REF_BIAS, REF_FIRST, REF_OFFSET, REF_ROWS, REF_TABLE_STEP, REF_TERMS, ROAD_CLASSES, Episode,
+    Reference,
+)
 
 #: The lower end of ISO 8608's spatial frequency band [cycles/m].
 N_MIN = 0.011
@@ -40,8 +53,14 @@ N0 = 0.1
 
 #: Bytes of a road's table per sample: x1d and its three derivatives, float64.
 TABLE_BYTES_PER_SAMPLE = 32
-#: The most memory the road tables of one evaluation may take together [bytes]
-#: (1 GiB: about 1 000 road scenarios of 10 s at the shipped step of 0.3 ms);
+#: Bytes of a summed road per component: A_k·e^{iφ_k}, two float64.
+TERM_BYTES = 16
+#: The most components a road sums in the kernel at each sample; a road with
+#: more is tabulated. Summing costs about 1 ns per component per sample on
+#: the batch kernel's shared reference (``scripts/bench --scenarios``).
+SUM_TERMS_MAX = 64
+#: The most memory the road arrays of one evaluation may take together [bytes]
+#: (1 GiB: about 1 000 tabulated road scenarios of 10 s at the shipped step of 0.3 ms);
 #: a scenario set, horizon or step beyond it is refused before any table is built.
 MAX_ROAD_BYTES = 1 << 30
 
@@ -66,7 +85,13 @@ def road_components(ref: Reference, period: float) -> tuple[np.ndarray, np.ndarr
     return f, amplitude, phase
 
 
-def road_table(ref: Reference, episode: Episode) -> np.ndarray:
+def road_terms(ref: Reference, episode: Episode) -> int:
+    """How many components the road has on ``episode``'s grid (one period)."""
+    return len(_harmonics(ref, episode.samples * episode.step))
+
+
+def _fft_table(n: int, period: float, k: np.ndarray, a: np.ndarray, phi: np.ndarray, offset: float,
+               bias: float) -> np.ndarray:
     """(x1d, ẋ1d, ẍ1d, x1d⁽³⁾) at t_i = i·Δt, i = 0 … n−1, as an (n, 4) array.
 
     On the grid, component k is sin(2π k i/n + φ_k): each column is the
@@ -74,11 +99,8 @@ def road_table(ref: Reference, episode: Episode) -> np.ndarray:
     derivative), a real inverse DFT of half a spectrum (``irfft``), so the
     table costs O(n log n) time whatever the number of components (all below
     Nyquist, which the config checks: no aliasing), and 8 bytes per sample
-    beyond itself."""
-    n = episode.samples
-    period = n * episode.step
-    k = _harmonics(ref, period)
-    _, a, phi = road_components(ref, period)
+    beyond itself. Harmonics ``k``, amplitudes ``a`` [m] and phases ``phi``
+    [rad] of :func:`road_components`, ``bias`` = Σ_k A_k·sin φ_k [m]."""
     w = 2.0 * math.pi * k / period
     out = np.empty((n, 4))
     half = np.zeros(n // 2 + 1, dtype=np.complex128)       # k < n/2: the cutoff is below Nyquist
@@ -86,14 +108,95 @@ def road_table(ref: Reference, episode: Episode) -> np.ndarray:
     for d in range(4):
         half[k] = base * (1j * w) ** d
         out[:, d] = np.fft.irfft(half, n)
-    out[:, 0] += ref.offset - float(np.sum(a * np.sin(phi)))
-    out[0, 0] = ref.offset                     # exactly: every sin(φ_k) − sin(φ_k) is 0 at t = 0
+    out[:, 0] += offset - bias
+    out[0, 0] = offset                         # exactly: every sin(φ_k) − sin(φ_k) is 0 at t = 0
+    return out
+
+
+def road_array(ref: Reference, episode: Episode) -> np.ndarray:
+    """The reference array of a road on ``episode``'s grid: the header of
+    ``ref`` (grid, components, bias Σ A_k·sin φ_k), then the components
+    A_k·e^{iφ_k} as (re, im) pairs if there are at most
+    :data:`SUM_TERMS_MAX`, else the table (:func:`_fft_table`; REF_TERMS −1)."""
+    n = episode.samples
+    period = n * episode.step
+    k = _harmonics(ref, period)
+    _, a, phi = road_components(ref, period)
+    head = ref.as_array()
+    head[REF_ROWS] = n
+    head[REF_TABLE_STEP] = episode.step
+    head[REF_BIAS] = bias = float(np.sum(a * np.sin(phi)))
+    if len(k) <= SUM_TERMS_MAX:
+        head[REF_TERMS] = len(k)
+        head[REF_FIRST] = k[0] if len(k) else 0
+        terms = np.empty((len(k), 2))
+        terms[:, 0] = a * np.cos(phi)
+        terms[:, 1] = a * np.sin(phi)
+        return np.concatenate([head, terms.ravel()])
+    head[REF_TERMS] = -1
+    return np.concatenate([head, _fft_table(n, period, k, a, phi, ref.offset, bias).ravel()])
+
+
+@njit(**INLINE)
+def road_at(rp, i):
+    """(x1d, ẋ1d, ẍ1d, x1d⁽³⁾) of the road array ``rp`` at grid sample i,
+    0 ≤ i < rp[REF_ROWS]: its table row, or the sum of its components.
+
+    Summed: with z = e^{2πi·i/n}, component k is Im(c_k·z^k) and its
+    derivatives ω_k·Re, −ω_k²·Im, −ω_k³·Re (ω_k = 2πk/T); z^{k0} is one
+    sin/cos of an exact integer angle, each next harmonic one product by z."""
+    terms = int(rp[REF_TERMS])
+    rows = int(rp[REF_ROWS])
+    if terms < 0:
+        j = N_REFERENCE + 4 * i
+        return rp[j], rp[j + 1], rp[j + 2], rp[j + 3]
+    first = int(rp[REF_FIRST])
+    step_angle = 2.0 * math.pi / rows
+    zr = math.cos(step_angle * i)
+    zi = math.sin(step_angle * i)
+    angle = step_angle * ((first * i) % rows)
+    pr = math.cos(angle)
+    pj = math.sin(angle)
+    w1 = step_angle / rp[REF_TABLE_STEP]                  # 2π/T [rad/s]
+    x = v = a = jerk = 0.0
+    for m in range(terms):
+        cr = rp[N_REFERENCE + 2 * m]
+        ci = rp[N_REFERENCE + 2 * m + 1]
+        re = cr * pr - ci * pj
+        im = cr * pj + ci * pr
+        w = w1 * (first + m)
+        w2 = w * w
+        x += im
+        v += w * re
+        a -= w2 * im
+        jerk -= w2 * w * re
+        pr, pj = pr * zr - pj * zi, pr * zi + pj * zr
+    if i == 0:
+        return rp[REF_OFFSET], v, a, jerk          # exactly: every sin(φ_k) − sin(φ_k) is 0 at t = 0
+    return rp[REF_OFFSET] - rp[REF_BIAS] + x, v, a, jerk
+
+
+@njit(**KERNEL)
+def _tabulate(rp, out):
+    for i in range(out.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = road_at(rp, i)
+
+
+def road_table(ref: Reference, episode: Episode) -> np.ndarray:
+    """(x1d, ẋ1d, ẍ1d, x1d⁽³⁾) at t_i = i·Δt, i = 0 … n−1, as an (n, 4)
+    array: what the kernels read at each sample, however the road is held."""
+    out = np.empty((episode.samples, 4))
+    _tabulate(road_array(ref, episode), out)
     return out
 
 
 def road_bytes(ref: Reference, episode: Episode) -> int:
-    """Memory of the table :func:`road_table` builds [bytes] (0 for another kind)."""
-    return episode.samples * TABLE_BYTES_PER_SAMPLE if ref.kind == "road" else 0
+    """Memory of what :func:`road_array` puts after the header [bytes]:
+    16 per component summed, 32 per sample tabulated (0 for another kind)."""
+    if ref.kind != "road":
+        return 0
+    terms = road_terms(ref, episode)
+    return terms * TERM_BYTES if terms <= SUM_TERMS_MAX else episode.samples * TABLE_BYTES_PER_SAMPLE
 
 
 def road_rms(ref: Reference, episode: Episode) -> float:

@@ -18,7 +18,7 @@ topic carries the plant's true state, which the trace and a bag keep); with
 and the law adds nothing. A parameter set that the
 core rejects (k1 = -1, NaN, a_min > a_max, ...) is refused with the reason
 and the old values stay; accepted changes apply from the next sample (a
-new road from the first sample after its table is built, off the executor).
+new road from the first sample after it is built, off the executor).
 ``simulation.*`` (the step must be the plant's) is read-only after start-up.
 
 Topics (layouts in :mod:`has_control.wire.topics`): ``state`` (in), ``command``
@@ -295,7 +295,7 @@ class ControllerNode(LifecycleNode):
             generation = self._generation
             self._pending = None
         if cfg.reference.kind == "road" and not road_cached(cfg.reference, cfg.episode):
-            # a road's table takes O(n log n) (0.07 s for 10 s at 1.6 kHz cutoff): built off the executor,
+            # a tabulated road takes O(n log n) (0.07 s for 10 s at 1.6 kHz cutoff): built off the executor,
             # applied at the first sample after it is ready; the old reference runs meanwhile
             threading.Thread(target=self._build, args=(cfg, generation), name="controller-road", daemon=True).start()
         else:
