@@ -11,33 +11,20 @@ from has_control.wire import cdr
 from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, STATE, TRUE_STATE
 from has_control.bag.base import BagError, warn
 from has_control.bag.read import Bag, read_bag
+from has_control.bag.samples import RunSamples
 from has_control.core.cost import score_arrays
 
 
 @dataclass
-class RecordedRun:
+class RecordedRun(RunSamples):
     """A lock-step run read back from its bag, one row per sample."""
 
-    t: np.ndarray          # [s]
-    y: np.ndarray          # [m]
-    ydot: np.ndarray       # [m/s]
-    p1: np.ndarray         # [Pa]
-    p2: np.ndarray         # [Pa]
-    u: np.ndarray          # [m]
-    x1d: np.ndarray        # [m]
     diverged: bool
     cfg: object
 
     @property
     def samples(self) -> int:
         return len(self.u)
-
-    def __getitem__(self, column: str) -> np.ndarray:
-        """Trace-style columns: t, x1d, y, ydot, P1, P2, u, e1."""
-        if column == "e1":
-            return self.x1d - self.y                  # SPEC §3: e1 = x1d − x1
-        return {"t": self.t, "x1d": self.x1d, "y": self.y, "ydot": self.ydot, "P1": self.p1,
-                "P2": self.p2, "u": self.u}[column]
 
 
 def _by_sample(stamps_ns: np.ndarray, step_ns: int, what: str, path) -> np.ndarray:

@@ -36,6 +36,7 @@ import numpy as np
 
 from has_control.bag.base import PARAMETERS_KEY, BagError, warn
 from has_control.bag.read import Bag, read_bag
+from has_control.bag.samples import RunSamples
 from has_control.common.errors import HasControlError
 from has_control.config import build_config
 from has_control.core.params import Config
@@ -48,18 +49,11 @@ from has_control.wire.topics import (
 
 
 @dataclass
-class RunSeries:
+class RunSeries(RunSamples):
     """One recorded run on its sample grid (row i: t = i·Δt); NaN where nothing was recorded."""
 
     name: str
     cfg: Config
-    t: np.ndarray              # [s]
-    y: np.ndarray              # [m]
-    ydot: np.ndarray           # [m/s]
-    p1: np.ndarray             # [Pa]
-    p2: np.ndarray             # [Pa]
-    u: np.ndarray              # [m]
-    x1d: np.ndarray            # [m]
     a1_hat: np.ndarray         # [N·s/m]
     a2_hat: np.ndarray         # [m³/(s·Pa)]
     gains_t: np.ndarray        # [s], when each gain set took effect
@@ -68,11 +62,6 @@ class RunSeries:
     parameters: bool           # the bag carried the run's parameters
     missed: np.ndarray | None = None     # samples a realtime plant ran without their command (None: not recorded)
     failsafe: np.ndarray | None = None   # of those, the samples run with the valve centred
-
-    @property
-    def e1(self) -> np.ndarray:
-        """e1 = x1d − y [m] (SPEC §3)."""
-        return self.x1d - self.y
 
     @property
     def complete(self) -> bool:
@@ -136,9 +125,10 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
         x1d = _fill_reference(x1d, cfg, step)
     gt, gk = _gains(bag, cfg, grid)
     missed, failsafe = _missed(bag, grid)
-    return RunSeries(Path(bag.path).name or str(bag.path), cfg, np.arange(n) * step, out["y"], out["ydot"],
-                     out["p1"], out["p2"], u, x1d, a1, a2, gt, gk, missing, PARAMETERS_KEY in bag.custom_data,
-                     missed, failsafe)
+    return RunSeries(np.arange(n) * step, out["y"], out["ydot"], out["p1"], out["p2"], u, x1d,
+                     name=Path(bag.path).name or str(bag.path), cfg=cfg, a1_hat=a1, a2_hat=a2, gains_t=gt,
+                     gains=gk, missing=missing, parameters=PARAMETERS_KEY in bag.custom_data, missed=missed,
+                     failsafe=failsafe)
 
 
 def _missed(bag: Bag, grid: _Grid) -> tuple[np.ndarray | None, np.ndarray | None]:
