@@ -159,6 +159,10 @@ def _episode(k1, k2, k3, ap, pp, cp, rp, sp, seed, ep, x0, trace):
 # rows of a block's lane state
 _X1, _X2, _X3, _X4, _XV, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 = range(16)
 _ROWS = 16
+#: Samples whose reference :func:`_block` computes ahead, in a loop of its own:
+#: the sample loop then holds no reference code (a road's sum in it made the
+#: sine's batch 3.5 % slower).
+_AHEAD = 256
 
 
 @njit(**INLINE)
@@ -205,23 +209,31 @@ def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
         s[_K2, q] = gains[p, 1]
         s[_K3, q] = gains[p, 2]
     count = 0.0
-    for i in range(n):
-        r0, r1, r2, r3 = reference(rp, i * dt)
-        n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
-        in_window = lo <= i <= hi
-        if in_window:
-            count += 1.0
-        if backward:
-            _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp_backward, ep, dt,
-                   y_limit, i + 1.0)
-        else:
-            _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp_analytic, ep, dt,
-                   y_limit, i + 1.0)
-        alive = 0
-        for q in range(LANES):
-            alive += s[_DEAD, q] == 0.0
+    ref = np.empty((_AHEAD, 4))
+    alive = LANES
+    for start in range(0, n, _AHEAD):
         if alive == 0:
             break
+        ahead = min(_AHEAD, n - start)
+        for j in range(ahead):
+            ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3] = reference(rp, (start + j) * dt)
+        for j in range(ahead):
+            i = start + j
+            n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
+            in_window = lo <= i <= hi
+            if in_window:
+                count += 1.0
+            if backward:
+                _lanes(s, i > 0, ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3], n1, n2, n3, n4, noisy, count,
+                       in_window, ap, pp, cp_backward, ep, dt, y_limit, i + 1.0)
+            else:
+                _lanes(s, i > 0, ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3], n1, n2, n3, n4, noisy, count,
+                       in_window, ap, pp, cp_analytic, ep, dt, y_limit, i + 1.0)
+            alive = 0
+            for q in range(LANES):
+                alive += s[_DEAD, q] == 0.0
+            if alive == 0:
+                break
     for q in range(min(last - first, LANES)):           # the caller never passes more
         p = first + q
         if s[_DEAD, q] > 0.0:
