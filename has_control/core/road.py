@@ -56,8 +56,9 @@ TABLE_BYTES_PER_SAMPLE = 32
 #: Bytes of a summed road per component: A_k·e^{iφ_k}, two float64.
 TERM_BYTES = 16
 #: The most components a road sums in the kernel at each sample; a road with
-#: more is tabulated. Summing costs about 1 ns per component per sample on
-#: the batch kernel's shared reference (``scripts/bench --scenarios``).
+#: more is tabulated. Summing costs 2-4 ns per component per sample, once per
+#: block of candidates in the batch kernel: a 10 s road at the shipped 2 Hz
+#: cutoff takes 1.4x a sine's time, at 6 Hz 2x (``scripts/bench --scenarios``).
 SUM_TERMS_MAX = 64
 #: The most memory the road arrays of one evaluation may take together [bytes]
 #: (1 GiB: about 1 000 tabulated road scenarios of 10 s at the shipped step of 0.3 ms);
@@ -178,6 +179,7 @@ def road_at(rp, i):
 
 @njit(**KERNEL)
 def _tabulate(rp, out):
+    """Row i of ``out`` = :func:`road_at` (rp, i)."""
     for i in range(out.shape[0]):
         out[i, 0], out[i, 1], out[i, 2], out[i, 3] = road_at(rp, i)
 
