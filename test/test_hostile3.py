@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import socket
@@ -209,10 +210,17 @@ def test_sigterm_leaves_a_session_that_resumes(tmp_path):
     assert tuning.swarm.particles == 80 and (swarm is None or swarm.iteration == k)
 
 
+#: What a realtime run may log while it runs, before any signal: a fail-safe outage (a stall of the
+#: shared machine) and its end. Not a summary, not a traceback.
+RUN_EVENTS = re.compile(r"^\[(WARN|INFO)\] \[[0-9.]+\] \[plant\]: (no command for \d+ samples at sample \d+: "
+                        r"valve centred|commands are back at sample \d+$)")
+
+
 @pytest.mark.ros
 def test_ctrl_c_during_a_realtime_stack_is_one_line():
     rc, err = _signalled(["stack", "--realtime", "--duration", "20"], signal.SIGINT, 9.0)
-    assert rc == 130 and err.strip().splitlines() == ["has-control: interrupted"], err
+    lines = [line for line in err.strip().splitlines() if not RUN_EVENTS.match(line)]
+    assert rc == 130 and lines == ["has-control: interrupted"], err
 
 
 # --- 3: node params files -------------------------------------------------------------------------
