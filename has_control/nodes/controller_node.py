@@ -78,7 +78,7 @@ from has_control.wire.topics import (
     GAINS_LAYOUT, REFERENCE, REFERENCE_LAYOUT, STATE, STATE_LAYOUT,
 )
 from has_control.wire.codec import NOT_FINITE, get_stamp
-from has_control.nodes.foxglove import node_tap
+from has_control.nodes.live_tap import node_tap
 from has_control.nodes.managed import autostart as bring_up_now, declare_autostart, refuse, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
 from has_control.nodes.parameters import config_from_node, declare_config

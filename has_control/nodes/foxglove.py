@@ -13,7 +13,7 @@ messages (the SDK's per-client backlog), never slows the loop down.
 
 ``has-control stack --foxglove [PORT]`` serves both nodes' topics on one
 server; the plant and controller nodes serve their own with the parameter
-``foxglove_port`` (:func:`node_tap`). Open it in Foxglove with
+``foxglove_port`` (:func:`has_control.nodes.live_tap.node_tap`). Open it in Foxglove with
 ``ws://127.0.0.1:PORT``.
 """
 from __future__ import annotations
@@ -24,7 +24,6 @@ from typing import Callable
 
 from has_control.common.errors import HasControlError
 from has_control.wire.topics import CLOCK, JOINT_STATE, LAYOUTS, RUN_TOPICS
-from has_control.nodes.runtime import tee
 from has_control.bag import msgdef
 
 DEFAULT_PORT = 8765
@@ -140,28 +139,3 @@ class LiveView:
 
     def __exit__(self, *exc):
         self.close()
-
-
-def node_tap(node, tap=None):
-    """Declare ``foxglove_port`` (0: off) on ``node``; when set, serve the
-    node's published topics there from a viewer process
-    (:class:`~has_control.nodes.live_process.LiveViewProcess`: the loop only
-    copies). Returns (the node's tap: ``tap`` and the view's sinks together,
-    the view or None). The view closes
-    when the node's context shuts down."""
-    from rcl_interfaces.msg import ParameterDescriptor
-    what = f"parameter {PARAMETER} ="
-    port = node.declare_parameter(PARAMETER, 0, ParameterDescriptor(
-        description="serve the published topics live on ws://127.0.0.1:PORT (Foxglove); 0: off",
-        read_only=True)).value
-    if port == 0:
-        return tap, None
-    try:
-        check_port(port, what)
-    except HasControlError as exc:
-        raise ValueError(f"{exc} or 0 (off)") from None
-    # lazy: live_process imports this module
-    from has_control.nodes.live_process import LiveViewProcess
-    view = LiveViewProcess(port, name=node.get_fully_qualified_name(), what=what)
-    node.context.on_shutdown(lambda: view.close())     # a bound method would be held weakly
-    return tee(tap, view.sink), view

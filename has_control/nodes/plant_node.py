@@ -78,7 +78,7 @@ from has_control.wire.topics import (CLOCK_LAYOUT, CLOCK_TOPIC, COMMAND, COMMAND
                                      TRUE_STATE)
 from has_control.wire.codec import NOT_FINITE
 from has_control.common.errors import ConfigError
-from has_control.nodes.foxglove import node_tap
+from has_control.nodes.live_tap import node_tap
 from has_control.nodes.managed import AUTOSTART, autostart, refuse, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, trigger_service
 from has_control.nodes.pacing import LoopStats, run_paced
