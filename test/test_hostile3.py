@@ -243,6 +243,18 @@ def test_a_bad_params_file_at_node_start_up_is_one_line_naming_it(node, tmp_path
         assert str(tmp_path / name) in err and "Traceback" not in err, err
 
 
+@pytest.mark.ros
+@pytest.mark.parametrize("node", ["plant", "controller"])
+def test_arguments_rcl_refuses_at_node_start_up_are_one_line(node, capfd):
+    """rcl logs its own [ERROR] line on fd 2 before it raises: held back, so ours is the one line."""
+    for ros_args in (["-p"], ["-p", "gains.k1:=["]):
+        with pytest.raises(SystemExit) as info:
+            main([node, "--ros-args", *ros_args])
+        lines = capfd.readouterr().err.strip().splitlines()
+        assert info.value.code == 2 and len(lines) == 1, lines
+        assert lines[0].startswith(f"has-control {node}: error: ROS refused the arguments: "), lines
+
+
 # --- 4, 5: bag metadata ---------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

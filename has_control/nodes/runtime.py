@@ -5,7 +5,9 @@ Names, types, joints and wire layouts of the topics are in
 """
 from __future__ import annotations
 
+import os
 import sys
+import tempfile
 from contextlib import contextmanager
 
 import rclpy
@@ -170,17 +172,45 @@ def check_params_files(argv) -> None:
 
 
 @contextmanager
+def _stderr_held():
+    """File descriptor 2 (what C code such as rcl's logger writes to) goes to
+    a temporary file while the block runs; yields a list that then holds
+    the bytes written."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    written: list[bytes] = []
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield written
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            held.seek(0)
+            written.append(held.read())
+
+
+@contextmanager
 def _init(args, prog: str):
     """``rclpy.init(args=args)``; what rcl refuses after our own check (a
-    value rcl's parser does not take) is one line and exit 2."""
-    try:
-        init = rclpy.init(args=args)
-    except RCLError as exc:
-        why = " ".join(str(exc).split())
+    value rcl's parser does not take) is one line and exit 2: rcl's own
+    ``[ERROR]`` log line is held back (its text is in the exception), what
+    rcl writes during a start-up that succeeds is passed on."""
+    refused = None
+    with _stderr_held() as held:
+        try:
+            init = rclpy.init(args=args)
+        except RCLError as exc:
+            refused = exc
+    if refused is not None:
+        why = " ".join(str(refused).split())
         files = params_files(args if args is not None else sys.argv)
         print(f"{prog}: error: {', '.join(files) + ': ' if files else ''}ROS refused the arguments: {why[:200]}",
               file=sys.stderr)
         raise SystemExit(2) from None
+    if held[0]:
+        sys.stderr.write(held[0].decode(errors="replace"))
+        sys.stderr.flush()
     with init:
         yield
 
