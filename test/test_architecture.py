@@ -182,3 +182,18 @@ def test_editing_a_callee_module_recompiles_the_kernels(tmp_path):
     with open(pkg / "core" / "actuator.py", "a") as f:
         f.write("\n# an edit to the physics\n")
     assert cache_path() != first
+
+
+def test_every_compiled_callee_is_in_the_cache_key():
+    """The kernels' cache is keyed by the sources of COMPILED_MODULES: a module
+    with compiled functions that one of them imports (core.road's sum, inlined
+    into the reference) must be among them, or an edit to it runs a stale kernel."""
+    compiled = {f"has_control.{m}" for m in has_control.COMPILED_MODULES}
+    paths = {m: p for m, _, p in _modules()}
+    missing = set()
+    for module in compiled:
+        for _, name, _ in _imports(paths[module], module):
+            callee = name if name in paths else name.rpartition(".")[0]
+            if callee in paths and callee not in compiled and "@njit" in paths[callee].read_text():
+                missing.add(callee)
+    assert not missing, f"compiled modules missing from has_control.COMPILED_MODULES: {sorted(missing)}"

@@ -30,7 +30,8 @@ from has_control.common.errors import ConfigError, HasControlError
 from has_control.common.files import check_output, write_atomic
 from has_control.config import with_horizon
 from has_control.core.episode import evaluate_configs, simulate
-from has_control.core.params import REF_TERMS, Config, Episode, Reference
+from has_control.core.reference import check_road_memory
+from has_control.core.params import N_REFERENCE, REF_TERMS, Config, Episode, Reference
 
 NOM = "scenarios:\n  nominal: {}\n  heavy: {plant.mass: 1800.0}\n"
 
@@ -210,10 +211,11 @@ def test_sigterm_leaves_a_session_that_resumes(tmp_path):
     assert tuning.swarm.particles == 80 and (swarm is None or swarm.iteration == k)
 
 
-#: What a realtime run may log while it runs, before any signal: a fail-safe outage (a stall of the
-#: shared machine) and its end. Not a summary, not a traceback.
+#: What a realtime run may log while it runs: a fail-safe outage (a stall of the shared machine) and its
+#: end. These come before the signal: the paced loop runs on the main thread, where Ctrl-C ends it at
+#: once, so no sample goes unanswered after it. Not a summary, not a traceback.
 RUN_EVENTS = re.compile(r"^\[(WARN|INFO)\] \[[0-9.]+\] \[plant\]: (no command for \d+ samples at sample \d+: "
-                        r"valve centred|commands are back at sample \d+$)")
+                        r"valve centred \(u = 0\) until commands return|commands are back at sample \d+)$")
 
 
 @pytest.mark.ros
@@ -411,6 +413,16 @@ def test_a_road_at_the_shipped_cutoff_costs_about_what_a_sine_does_in_memory():
         finally:
             tracemalloc.stop()
     assert peak(roads[1:]) <= 2 * peak(sines[1:])
+    many = [(Reference(kind="road", seed=i), ep) for i in range(10_000)]      # the scenario limit: accepted
+    check_road_memory(many)
+
+
+@pytest.mark.parametrize("cutoff", [2.0, 50.0])
+def test_road_bytes_are_what_the_road_array_holds(cutoff):
+    from has_control.core.road import road_array, road_bytes
+    ref, ep = Reference(kind="road", cutoff=cutoff, seed=3), Episode()
+    assert road_array(ref, ep).nbytes == 8 * N_REFERENCE + road_bytes(ref, ep)
+    assert road_bytes(Reference(), ep) == 0
 
 
 def test_the_summed_road_is_the_tabulated_one(monkeypatch):

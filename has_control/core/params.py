@@ -39,9 +39,9 @@ NOISE_ADDED_BY = {"controller": 0, "plant": 1}
 
 # --- reference array layout -------------------------------------------------
 REF_KIND, REF_AMPLITUDE, REF_OMEGA, REF_OFFSET, REF_T0, REF_RISE, REF_F0, \
-    REF_F1, REF_SWEEP, REF_ROWS, REF_TABLE_STEP, REF_TERMS, REF_FIRST, REF_BIAS = range(14)
+    REF_F1, REF_SWEEP, REF_ROWS, REF_GRID_STEP, REF_TERMS, REF_FIRST, REF_BIAS = range(14)
 #: Header of the reference array. A road (:mod:`has_control.core.road`) is defined on a grid of
-#: REF_ROWS samples, one each REF_TABLE_STEP [s], and repeats after it; it follows the header
+#: REF_ROWS samples, one each REF_GRID_STEP [s], and repeats after it; it follows the header
 #: with REF_TERMS components (harmonics REF_FIRST, REF_FIRST + 1, …, two numbers each) summed
 #: in the kernel, or, if REF_TERMS is −1, with REF_ROWS rows of (x1d, ẋ1d, ẍ1d, x1d⁽³⁾).
 N_REFERENCE = 14

@@ -18,9 +18,9 @@ from has_control.common.errors import ConfigError
 from has_control.core.jit import INLINE
 from has_control.core.params import (
     REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE, REF_ROAD, REF_ROWS,
-    REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_TABLE_STEP, Episode, Reference,
+    REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_GRID_STEP, Episode, Reference,
 )
-from has_control.core.road import MAX_ROAD_BYTES, SUM_TERMS_MAX, road_array, road_at, road_bytes
+from has_control.core.road import MAX_ROAD_BYTES, SUM_TERMS_MAX, road_array, road_at, road_bytes, road_terms
 
 
 @njit(**INLINE)
@@ -31,7 +31,7 @@ def reference(rp, t):
     sample, and the road repeats after the grid's last sample."""
     kind = int(rp[REF_KIND])
     if kind == REF_ROAD:
-        return road_at(rp, int(math.floor(t / rp[REF_TABLE_STEP] + 0.5)) % int(rp[REF_ROWS]))
+        return road_at(rp, int(math.floor(t / rp[REF_GRID_STEP] + 0.5)) % int(rp[REF_ROWS]))
     a = rp[REF_AMPLITUDE]
     off = rp[REF_OFFSET]
     if kind == REF_SINE:
@@ -74,7 +74,11 @@ def reference(rp, t):
 #: bytes, not by count: a count of 32 made 33 road scenarios rebuild every
 #: table on every call.
 ROAD_CACHE_BYTES = 512 << 20
+#: What an entry costs beyond its array [bytes]: its key (a Reference and an
+#: Episode) and the array object; it dominates for a summed road (384 bytes).
+ROAD_ENTRY_BYTES = 1024
 _road_cache: OrderedDict = OrderedDict()
+_road_cache_bytes = [0]            # the entries' arrays plus ROAD_ENTRY_BYTES each, kept as they come and go
 _road_cache_lock = threading.Lock()
 
 
@@ -89,11 +93,12 @@ def _road_array(ref: Reference, episode: Episode) -> np.ndarray:
             return _road_cache[key]
     array = road_array(ref, episode)
     with _road_cache_lock:
-        _road_cache[key] = array
-        total = sum(a.nbytes for a in _road_cache.values())
-        while total > ROAD_CACHE_BYTES and len(_road_cache) > 1:
+        if key not in _road_cache:                 # (another thread may have built it meanwhile)
+            _road_cache[key] = array
+            _road_cache_bytes[0] += array.nbytes + ROAD_ENTRY_BYTES
+        while _road_cache_bytes[0] > ROAD_CACHE_BYTES and len(_road_cache) > 1:
             _, dropped = _road_cache.popitem(last=False)
-            total -= dropped.nbytes
+            _road_cache_bytes[0] -= dropped.nbytes + ROAD_ENTRY_BYTES
     return array
 
 
@@ -109,9 +114,9 @@ def check_road_memory(pairs, where: str = "scenarios") -> None:
     :data:`has_control.core.road.MAX_ROAD_BYTES`; one line naming ``where``."""
     need = sum(road_bytes(r, e) for r, e in set(pairs))
     if need > MAX_ROAD_BYTES:
-        roads = sum(1 for r, _ in set(pairs) if r.kind == "road")
-        raise ConfigError(f"{where}: {roads} road references would take {need / 2**20:,.0f} MiB of tables, more "
-                          f"than the limit of {MAX_ROAD_BYTES / 2**20:,.0f} MiB (a road of more than "
+        tabulated = sum(1 for r, e in set(pairs) if r.kind == "road" and road_terms(r, e) > SUM_TERMS_MAX)
+        raise ConfigError(f"{where}: {tabulated} tabulated road references would take {need / 2**20:,.0f} MiB of "
+                          f"tables, more than the limit of {MAX_ROAD_BYTES / 2**20:,.0f} MiB (a road of more than "
                           f"{SUM_TERMS_MAX} components is tabulated, 32 bytes per sample): fewer road scenarios, "
                           "a lower reference.cutoff, a shorter simulation.horizon or a longer simulation.step")
 

@@ -41,7 +41,7 @@ from numba import njit
 
 from has_control.core.jit import INLINE, KERNEL
 from has_control.core.params import (
-    N_REFERENCE, REF_BIAS, REF_FIRST, REF_OFFSET, REF_ROWS, REF_TABLE_STEP, REF_TERMS, ROAD_CLASSES, Episode,
+    N_REFERENCE, REF_BIAS, REF_FIRST, REF_OFFSET, REF_ROWS, REF_GRID_STEP, REF_TERMS, ROAD_CLASSES, Episode,
     Reference,
 )
 
@@ -56,9 +56,9 @@ TABLE_BYTES_PER_SAMPLE = 32
 #: Bytes of a summed road per component: A_k·e^{iφ_k}, two float64.
 TERM_BYTES = 16
 #: The most components a road sums in the kernel at each sample; a road with
-#: more is tabulated. Summing costs 2-4 ns per component per sample, once per
-#: block of candidates in the batch kernel: a 10 s road at the shipped 2 Hz
-#: cutoff takes 1.4x a sine's time, at 6 Hz 2x (``scripts/bench --scenarios``).
+#: more is tabulated. Summing costs a few ns per component per sample, once
+#: per block of candidates in the batch kernel (``scripts/bench --scenarios``;
+#: the figures are in docs/speed.md).
 SUM_TERMS_MAX = 64
 #: The most memory the road arrays of one evaluation may take together [bytes]
 #: (1 GiB: about 1 000 tabulated road scenarios of 10 s at the shipped step of 0.3 ms);
@@ -66,13 +66,18 @@ SUM_TERMS_MAX = 64
 MAX_ROAD_BYTES = 1 << 30
 
 
-def _harmonics(ref: Reference, period: float) -> np.ndarray:
-    """The harmonic numbers k (f_k = k/period) in the band."""
+def _band(ref: Reference, period: float) -> tuple[int, int]:
+    """The first and one past the last harmonic number k (f_k = k/period) in the band."""
     df = 1.0 / period
     low = max(N_MIN * ref.speed, df)
     if low > ref.cutoff:                       # no harmonic in the band (and no huge or infinite k to count to)
-        return np.arange(0)
-    return np.arange(math.ceil(low / df - 1e-9), math.floor(ref.cutoff / df + 1e-9) + 1)
+        return 0, 0
+    return math.ceil(low / df - 1e-9), math.floor(ref.cutoff / df + 1e-9) + 1
+
+
+def _harmonics(ref: Reference, period: float) -> np.ndarray:
+    """The harmonic numbers k (f_k = k/period) in the band."""
+    return np.arange(*_band(ref, period))
 
 
 def road_components(ref: Reference, period: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -88,7 +93,8 @@ def road_components(ref: Reference, period: float) -> tuple[np.ndarray, np.ndarr
 
 def road_terms(ref: Reference, episode: Episode) -> int:
     """How many components the road has on ``episode``'s grid (one period)."""
-    return len(_harmonics(ref, episode.samples * episode.step))
+    first, end = _band(ref, episode.samples * episode.step)
+    return max(end - first, 0)
 
 
 def _fft_table(n: int, period: float, k: np.ndarray, a: np.ndarray, phi: np.ndarray, offset: float,
@@ -125,7 +131,7 @@ def road_array(ref: Reference, episode: Episode) -> np.ndarray:
     _, a, phi = road_components(ref, period)
     head = ref.as_array()
     head[REF_ROWS] = n
-    head[REF_TABLE_STEP] = episode.step
+    head[REF_GRID_STEP] = episode.step
     head[REF_BIAS] = bias = float(np.sum(a * np.sin(phi)))
     if len(k) <= SUM_TERMS_MAX:
         head[REF_TERMS] = len(k)
@@ -158,7 +164,7 @@ def road_at(rp, i):
     angle = step_angle * ((first * i) % rows)
     pr = math.cos(angle)
     pj = math.sin(angle)
-    w1 = step_angle / rp[REF_TABLE_STEP]                  # 2π/T [rad/s]
+    w1 = step_angle / rp[REF_GRID_STEP]                  # 2π/T [rad/s]
     x = v = a = jerk = 0.0
     for m in range(terms):
         cr = rp[N_REFERENCE + 2 * m]
