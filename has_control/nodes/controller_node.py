@@ -78,6 +78,9 @@ from has_control.wire.topics import (
     GAINS_LAYOUT, REFERENCE, REFERENCE_LAYOUT, STATE, STATE_LAYOUT,
 )
 from has_control.wire.codec import NOT_FINITE, get_stamp
+from has_control.wire.joint_mapping import (
+    DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC, DEFAULT_STATE_INTERFACES, parse_state_interfaces, resolve,
+)
 from has_control.nodes.live_tap import node_tap
 from has_control.nodes.managed import autostart as bring_up_now, declare_autostart, refuse, state_label
 from has_control.nodes.runtime import CONTROL_QOS, node_main, qos, raw_publish, spin, trigger_service
@@ -85,36 +88,18 @@ from has_control.nodes.parameters import config_from_node, declare_config
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "noise.")
 INTERFACES = ("has_control", "ros2_control")
-INTERFACE_KINDS = ("position", "velocity", "effort")
 #: The controller's own parameters: (name, default, meaning and unit, read-only).
 OWN_PARAMETERS = (
     ("publish_internals", True, "publish ~/controller_state and ~/reference every sample", False),
     ("interface", "has_control", "has_control (the plant's state/command JointStates) | ros2_control "
      "(JointState from joint_states_topic, Float64MultiArray [u] on command_topic)", True),
-    ("joint_states_topic", "/joint_states", "ros2_control: the sensor_msgs/JointState topic read", True),
-    ("command_topic", "/forward_command_controller/commands",
+    ("joint_states_topic", DEFAULT_JOINT_STATES_TOPIC, "ros2_control: the sensor_msgs/JointState topic read", True),
+    ("command_topic", DEFAULT_COMMAND_TOPIC,
      "ros2_control: the std_msgs/Float64MultiArray topic the valve command u [m] is written to", True),
-    ("state_interfaces", ["actuator/position", "actuator/velocity", "chamber_1/effort", "chamber_2/effort"],
+    ("state_interfaces", list(DEFAULT_STATE_INTERFACES),
      "ros2_control: joint/interface of y [m], y_dot [m/s], P1 [Pa], P2 [Pa] "
      "(interface: position, velocity or effort)", True),
 )
-
-
-def parse_state_interfaces(entries) -> list[tuple[str, int]]:
-    """``joint/interface`` × 4 → [(joint, 0 position | 1 velocity | 2 effort)]
-    (ValueError naming the parameter if not so)."""
-    entries = list(entries)
-    if len(entries) != 4:
-        raise ValueError(f"parameter state_interfaces = {entries!r}: expected 4 joint/interface entries "
-                         "(y, y_dot, P1, P2)")
-    out = []
-    for e in entries:
-        joint, _, kind = str(e).rpartition("/")
-        if not joint or kind not in INTERFACE_KINDS:
-            raise ValueError(f"parameter state_interfaces: {e!r}: expected JOINT/INTERFACE with INTERFACE one of "
-                             f"{', '.join(INTERFACE_KINDS)}")
-        out.append((joint, INTERFACE_KINDS.index(kind)))
-    return out
 
 
 class ControllerNode(LifecycleNode):
@@ -371,8 +356,7 @@ class ControllerNode(LifecycleNode):
         began = time.perf_counter_ns()
         if msg.name != self._names:             # the joints' order is looked up once per layout
             self._names = list(msg.name)
-            index = {n: k for k, n in enumerate(self._names)}
-            self._index = [(index.get(joint, -1), kind) for joint, kind in self._mapping]
+            self._index = resolve(self._names, self._mapping)
         x = self._x
         arrays = (msg.position, msg.velocity, msg.effort)
         for k, (j, kind) in enumerate(self._index):
