@@ -96,4 +96,19 @@ def table(result, experiments: int) -> str:
               if math.isfinite(c[i, j]) and abs(c[i, j]) >= 0.5]
     lines.append("correlations |r| >= 0.5: " + (", ".join(strong) if strong else "none"))
     lines.append("residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in result.residual_rms.items()))
+    v = result.verdict
+    if v is not None:
+        from has_control.identify.verdict import CORRELATION, HELD_OUT_FIT, LAGS, RESIDUAL_RATIO
+        lines.append(f"{'residual analysis':<18}" + "".join(f"{c:>12}" for c in v.noise))
+        lines.append(f"{'noise level':<18}" + "".join(f"{x:>12.3g}" for x in v.noise.values()))
+        lines.append(f"{'RMS / noise':<18}" + "".join(f"{x:>12.3g}" for x in v.ratio.values())
+                     + f"   (limit {RESIDUAL_RATIO:g})")
+        lines.append(f"{'autocorrelation':<18}" + "".join(f"{x:>+12.3f}" for x in v.autocorrelation.values())
+                     + f"   (|r| limit {CORRELATION:g}, lags 1-{LAGS})")
+        lines.append(f"{'x-corr. command':<18}" + "".join(f"{x:>+12.3f}" for x in v.cross_correlation.values())
+                     + f"   (|r| limit {CORRELATION:g}, lags 1-{LAGS})")
+        if v.held_out:
+            lines.append(f"{'held-out fit %':<18}" + "".join(f"{x:>12.2f}" for x in v.held_out.values())
+                         + f"   (limit {HELD_OUT_FIT:g} %)")
+        lines.append(v.line())
     return "\n".join(lines)

@@ -42,6 +42,7 @@ from has_control.identify.parameters import (
     DEFAULT_KEYS, PARAMETERS, TAU_SCALE, default_bounds, given, plant_array, prior, scale,
 )
 from has_control.identify.segments import SEGMENT_SAMPLES, segment_starts
+from has_control.identify.verdict import Verdict, verdict as residual_verdict
 
 CHANNELS = ("y", "ydot", "P1", "P2")
 #: 97.5 % quantile of the standard normal: 95 % two-sided intervals.
@@ -54,6 +55,9 @@ MIN_SAMPLES_PER_PARAMETER = 660
 KEEP_SENSITIVITY = 1e-4
 #: Rounds of re-weighting before and after the first solve.
 WEIGHT_ROUNDS = 3
+#: How the intervals are made (stated in the JSON).
+COVARIANCE = ("the wider, per parameter, of the Gauss-Newton covariance and the segment-clustered sandwich "
+              "covariance")
 #: A residual of a prediction that blew up (wild parameters): large, finite.
 BLOWN_UP = 1e6
 
@@ -111,6 +115,7 @@ class IdentificationResult:
     seconds: float
     passes: int
     given: dict[str, float] = field(default_factory=dict)
+    verdict: Verdict | None = None
 
     def values(self) -> dict[str, float]:
         """The plant to write: each estimate (a not-identifiable one at its prior)."""
@@ -122,7 +127,9 @@ class IdentificationResult:
                                                                     for row in self.correlation.tolist()]},
                 "singular_values": self.singular_values.tolist(), "residual_rms": self.residual_rms,
                 "success": self.success, "message": self.message, "evaluations": self.evaluations,
-                "segments": self.segments, "seconds": self.seconds, "passes": self.passes}
+                "segments": self.segments, "seconds": self.seconds, "passes": self.passes,
+                "model": self.verdict.as_json() if self.verdict is not None else None,
+                "covariance": COVARIANCE}
 
 
 class _Problem:
@@ -337,10 +344,34 @@ def identify(experiments: list[Experiment], estimate=DEFAULT_KEYS, bounds: dict 
         ok = half <= (tau_tolerance if k == "valve_time_constant" else tolerance * abs(v))
         estimates[k] = Estimate(k, v, se, v - half, v + half, "identified" if ok else "poorly determined",
                                 priors[k], ee.get(k, math.nan))
-    return IdentificationResult(
+    result = IdentificationResult(
         estimates, tuple(free), fit["correlation"], first_sv, fit["rms"], True, fit["message"], evaluations,
         fit["segments"], time.perf_counter() - t0, passes,
         {k: given(cfg0, k) for k in PARAMETERS if k not in keys})
+    corner = valve_corner_hz({**result.given, **result.values()})
+    return apply_verdict(result, residual_verdict(experiments, fit["raw"], fit["starts"], length, corner))
+
+
+def valve_corner_hz(values: dict[str, float]) -> float:
+    """The valve's corner frequency [Hz]: 1/(2π·τ_v) of a first-order lag,
+    inf for an ideal valve."""
+    tau = values.get("valve_time_constant", 0.0)
+    return 1.0 / (2.0 * math.pi * tau) if tau > 0.0 else math.inf
+
+
+def apply_verdict(result: IdentificationResult, v: Verdict) -> IdentificationResult:
+    """``result`` judged by ``v``: with an INADEQUATE model no estimate stays
+    "identified" (its interval measures the noise, not the model's error).
+    A valve whose dynamics the band does not reach keeps its τ_v (the
+    low-frequency lag, which the data do determine): the verdict's line says
+    that its order is not seen."""
+    estimates = {}
+    for k, e in result.estimates.items():
+        if e.status == "identified" and not v.adequate:
+            e = dataclasses.replace(e, status="poorly determined",
+                                    why="the model is INADEQUATE: the interval holds for the model, not the machine")
+        estimates[k] = e
+    return dataclasses.replace(result, estimates=estimates, verdict=v)
 
 
 def _unidentifiable(key: str, value: float, se: float, at_bound: bool, bound) -> str:
@@ -378,6 +409,7 @@ def _fit(exps, keys, start, bnds, fixed, max_evaluations, length) -> dict:
                             max_nfev=max_evaluations, xtol=1e-8, ftol=1e-8, gtol=1e-8)
         converged = res.status > 0 and bool(np.isfinite(res.cost))
     rms = prob.set_weights(res.x)
+    raw = prob.raw(res.x)
     r = prob(res.x)
     jac = prob.jacobian(res.x)
     dof = max(len(r) - len(keys) - prob.nuisance, 1)
@@ -386,7 +418,8 @@ def _fit(exps, keys, start, bnds, fixed, max_evaluations, length) -> dict:
     tiny = sv <= sv[0] * 1e-10
     inv = np.where(tiny, np.inf, 1.0 / np.where(tiny, 1.0, sv) ** 2)
     cov_z = (vt.T * inv) @ vt * s2 if not tiny.any() else _cov_with_null(vt, sv, tiny, s2)
-    se = np.sqrt(np.abs(np.diag(cov_z))) * scales
+    sandwich = _sandwich(jac, r, prob.segments, cov_z, s2)
+    se = np.maximum(np.sqrt(np.abs(np.diag(cov_z))), np.sqrt(np.abs(np.diag(sandwich)))) * scales
     with np.errstate(invalid="ignore", divide="ignore"):
         d = np.sqrt(np.abs(np.diag(cov_z)))
         corr = cov_z / np.outer(d, d)
@@ -395,7 +428,20 @@ def _fit(exps, keys, start, bnds, fixed, max_evaluations, length) -> dict:
     return {"keys": keys, "converged": converged, "message": res.message, "values": res.x * scales, "se": se,
             "correlation": corr, "singular_values": sv,
             "at_bound": at_bound, "rms": rms, "segments": prob.segments,
-            "evaluations": prob.evaluations}
+            "evaluations": prob.evaluations, "raw": raw, "starts": prob.starts}
+
+
+def _sandwich(jac, r, segments, cov_z, s2):
+    """The segment-clustered sandwich covariance B·(Σ_s g_s g_sᵀ)·B, g_s = J_sᵀ r_s
+    over the rows of segment s and B = cov_z/s² = (JᵀJ)⁻¹: what the
+    residuals' own spread from segment to segment says, where the
+    Gauss-Newton covariance assumes them white (it is not, for a model that
+    misses part of the physics)."""
+    if segments == 0 or len(r) % segments or not np.all(np.isfinite(cov_z)):
+        return cov_z
+    g = np.einsum("nrk,nr->nk", jac.reshape(segments, -1, jac.shape[1]), r.reshape(segments, -1))
+    bread = cov_z / max(s2, 1e-300)
+    return bread @ (g.T @ g) @ bread
 
 
 def _cov_with_null(vt, sv, tiny, s2):

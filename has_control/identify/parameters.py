@@ -31,7 +31,7 @@ PARAMETERS = {p.key: p for p in (
     Parameter("damping", "N s/m", "Bp", DAMPING, 0.0, 10.0),
     Parameter("bulk_modulus", "Pa", "beta_e", BULK, 0.25, 4.0),
     Parameter("leakage", "m^3/(s Pa)", "Ci", LEAKAGE, 0.0, 100.0),
-    Parameter("valve_gain", "m^2/sqrt(kg m)", "G", VALVE_GAIN, 0.25, 4.0),
+    Parameter("valve_gain", "m^2*sqrt(m/kg)", "G", VALVE_GAIN, 0.25, 4.0),
     Parameter("valve_time_constant", "s", "tau_v", VALVE_RATE, 0.0, 0.01, absolute=True),
     Parameter("supply_pressure", "Pa", "Ps", P_SUPPLY, 0.5, 1.5),
 )}

@@ -4,9 +4,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from has_control.bag.base import warn
 from has_control.identify.data import experiment_from_bag
-from has_control.identify.fit import IdentificationResult, identify
-from has_control.identify.params_out import params_yaml
+from has_control.identify.fit import IdentificationResult, apply_verdict, identify
+from has_control.identify.params_out import excluded_by_adaptation, params_yaml
 from has_control.identify.parameters import DEFAULT_KEYS
 from has_control.identify.validate import Validation, validate
 from has_control.common.files import write_atomic
@@ -31,8 +32,13 @@ def identify_bags(bags, estimate=None, configs=(), bounds=None, tolerance: float
     held = experiment_from_bag(validate_bag, configs) if validate_bag else None
     result = identify(exps, estimate or DEFAULT_KEYS, bounds=bounds, tolerance=tolerance,
                       max_evaluations=max_evaluations)
-    text = params_yaml(exps[0].cfg, result, note=f"has-control identify {' '.join(map(str, bags))}")
     val = validate(held, result) if held is not None else None
+    if val is not None and result.verdict is not None:
+        result = apply_verdict(result, result.verdict.with_held_out(val.fit))
+    text = params_yaml(exps[0].cfg, result, note=f"has-control identify {' '.join(map(str, bags))}")
+    if out:
+        for line in excluded_by_adaptation(exps[0].cfg, result):
+            warn(line)
     params = write_atomic(out, text) if out else None
     figure = None
     if val is not None and plot:
