@@ -114,3 +114,18 @@ def test_the_params_file_carries_adaptation_bounds_around_the_identified_values(
     assert ident.adaptation.initial == pytest.approx(init)
     assert ident.adaptation.lower[0] <= ident.plant.damping <= ident.adaptation.upper[0]
     assert ident.adaptation.lower[1] <= ident.plant.leakage <= ident.adaptation.upper[1]
+
+
+def test_the_valve_experiment_reaches_the_valves_corner_safely():
+    old = _cfg(horizon=10.0)                          # the whole 0.2-3 Hz sweep
+    valve = build_config({**TRUTH, **SENSORS}, base=load_config([CONFIG_DIR / "identify_valve.yaml"]))
+    runs = [simulate(old), simulate(valve)]
+    peak = [float(np.abs(r["u"]).max()) for r in runs]
+    assert peak[1] <= peak[0]                           # no larger valve command than the old experiment's
+    a = valve.plant.actuator(valve.actuator)
+    for p in ("P1", "P2"):
+        assert runs[1][p].max() < 0.9 * a.supply_pressure and runs[1][p].min() > 0.1 * a.supply_pressure
+    res = identify([experiment_from_trace(r, c) for r, c in zip(runs, (old, valve))])
+    v = res.verdict
+    assert v.band_hz >= 150.0 and v.valve_determined and v.adequate, v.line()
+    assert res.estimates["valve_time_constant"].lower <= 8e-4 <= res.estimates["valve_time_constant"].upper

@@ -247,9 +247,12 @@ def _check_relations(cfg: Config, flat: Mapping[str, Any], where) -> None:
              f"more than the limit of {MAX_SAMPLES:,}")
     start, end = ep.window()
     if ep.skip_start + ep.skip_end >= ep.horizon or start > end:
+        skips = (f"the metric window leaves out the first {ep.skip_start:g} s (metrics.skip_start) and the last "
+                 f"{ep.skip_end:g} s (metrics.skip_end), so no sample is scored")
         key = "metrics.skip_end" if "metrics.skip_end" in flat else "metrics.skip_start"
-        fail(key, getattr(ep, key.split(".")[1]),
-             f"metric window [{ep.skip_start}, {ep.horizon} - {ep.skip_end}] s lies outside the horizon")
+        fail(key, getattr(ep, key.split(".")[1]), f"{skips} of the {ep.horizon:g} s horizon "
+             f"(simulation.horizon; --duration): make the horizon longer than {ep.skip_start + ep.skip_end:g} s "
+             "or the skips shorter")
     _check_plant(cfg, fail)
 
 

@@ -230,6 +230,7 @@ class TuneResult:
         return {"variant": self.variant, "seed": self.seed, "gains": list(self.gains),
                 "J": to_json(self.result.fun), "iterations": self.result.nit,
                 "evaluations": self.result.nfev, "seconds": self.seconds,
+                "success": bool(self.result.success), "message": str(self.result.message),
                 "history": [to_json(h.best_cost) for h in self.result.history],
                 **({"bounds": self.bounds.as_json()} if self.bounds is not None else {}),
                 **({"scenarios": self.scenarios, "aggregate": self.aggregate,
