@@ -457,8 +457,8 @@ class EpisodeArrays:
     @classmethod
     def from_config(cls, cfg: Config) -> "EpisodeArrays":
         return cls(cfg.actuator.as_array(), cfg.plant.as_array(cfg.actuator), cfg.adaptation.as_array(),
-                   reference_array(cfg.reference, cfg.episode), cfg.noise.as_array(cfg.episode.step), int(cfg.noise.seed),
-                   cfg.episode.as_array(), cfg.plant.actuator(cfg.actuator).initial_state())
+                   reference_array(cfg.reference, cfg.episode), cfg.noise.as_array(cfg.episode.step),
+                   int(cfg.noise.seed), cfg.episode.as_array(), cfg.plant.actuator(cfg.actuator).initial_state())
 
     def kernel_args(self) -> tuple:
         """(ap, pp, cp, rp, sp, seed, ep, x0): the arguments the kernels take after the gains."""
