@@ -39,7 +39,7 @@ from has_control.core.reference import check_road_memory
 SCENARIO_PREFIXES = ("plant.", "noise.", "reference.")
 #: Scenarios in one set, named and drawn together.
 MAX_SCENARIOS = 10_000
-_INTEGER_KEYS = ("noise.seed", "reference.seed")
+_INTEGER_KEYS = ("noise.seed", "reference.seed", "plant.delay", "plant.substeps")
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,8 @@ from typing import Any, Callable, Iterable, Mapping
 from has_control.common.errors import ConfigError, shown
 from has_control.config.params_file import read_parameter_files
 from has_control.core.params import (
-    NOISE_ADDED_BY, ROAD_CLASSES, X3D_MODES, REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Noise,
-    Plant, Reference,
+    DELAY_MAX, NOISE_ADDED_BY, ROAD_CLASSES, SUBSTEPS_MAX, VELOCITY_SOURCES, X3D_MODES, REFERENCE_KINDS, Actuator,
+    Adaptation, Config, Episode, Gains, Noise, Plant, Reference,
 )
 from has_control.core.road import road_components
 
@@ -68,6 +68,13 @@ def _any(v: float) -> str | None:
     return None
 
 
+def _int_range(lo: int, hi: int) -> Callable[[int], str | None]:
+    def inner(v: int) -> str | None:
+        return None if lo <= v <= hi else f"must be a whole number in [{lo}, {hi}]"
+    inner.bounds = (lo, hi)
+    return inner
+
+
 def _pair(check: Callable[[float], str | None]) -> Callable[[Any], str | None]:
     def inner(v):
         for x in v:
@@ -89,7 +96,8 @@ def is_seed(v: Any) -> bool:
 
 
 # key -> (section attribute, field name, kind, check)
-#   kind: "float", "pair" (two floats), "seed" (a whole number in [0, SEED_LIMIT)), or a dict of allowed strings
+#   kind: "float", "pair" (two floats), "int" (a whole number), "seed" (a whole number in [0, SEED_LIMIT)),
+#   or a dict of allowed strings
 _SCHEMA: dict[str, tuple[str, str, Any, Callable]] = {}
 
 
@@ -127,11 +135,17 @@ _register("plant", "plant", {
     "damping": ("float", _non_negative), "leakage": ("float", _non_negative),
     "supply_pressure": ("float", _positive), "valve_gain": ("float", _positive),
     "valve_limit": ("float", _non_negative), "valve_time_constant": ("float", _non_negative),
+    "valve_frequency": ("float", _non_negative), "valve_damping_ratio": ("float", _positive),
+    "delay": ("int", _int_range(0, DELAY_MAX)), "substeps": ("int", _int_range(1, SUBSTEPS_MAX)),
+    "friction_coulomb": ("float", _non_negative), "friction_stribeck": ("float", _non_negative),
+    "stribeck_velocity": ("float", _positive), "friction_smoothing": ("float", _positive),
 })
 _register("noise", "noise", {
     "position": ("float", _non_negative), "velocity": ("float", _non_negative),
     "pressure_cap": ("float", _non_negative), "pressure_rod": ("float", _non_negative),
     "seed": ("seed", None), "added_by": (NOISE_ADDED_BY, None),
+    "position_resolution": ("float", _non_negative), "pressure_resolution": ("float", _non_negative),
+    "velocity_source": (VELOCITY_SOURCES, None), "velocity_filter_frequency": ("float", _non_negative),
 })
 _register("simulation", "episode", {
     "step": ("float", _positive), "horizon": ("float", _positive),
@@ -175,6 +189,10 @@ def _coerce(key: str, value: Any, kind: Any, source: str) -> Any:
         if not isinstance(value, (list, tuple)) or len(value) != 2:
             raise bad("expected a list of two numbers")
         return tuple(number(v) for v in value)
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise bad("expected a whole number")
+        return value
     if kind == "seed":
         if not is_seed(value):
             raise bad(f"expected a whole number in {SEED_RANGE}")
@@ -267,6 +285,14 @@ def _check_plant(cfg: Config, fail) -> None:
     if 0.0 < plant.valve_time_constant < ep.step:
         fail("plant.valve_time_constant", plant.valve_time_constant,
              f"must be 0 (an ideal valve) or at least simulation.step ({ep.step:g} s), for the RK4 step")
+    if plant.valve_frequency > 0.0:
+        if plant.valve_time_constant > 0.0:
+            fail("plant.valve_frequency", plant.valve_frequency,
+                 "a second-order spool excludes plant.valve_time_constant (set one of them to 0)")
+        limit = plant.substeps / (2.0 * math.pi * ep.step)
+        if plant.valve_frequency > limit:
+            fail("plant.valve_frequency", plant.valve_frequency,
+                 f"must be at most substeps/(2*pi*simulation.step) = {limit:.4g} Hz, for the RK4 step")
     if ref.kind == "road":
         if ref.cutoff >= 0.5 / ep.step:        # first: it bounds the number of components
             fail("reference.cutoff", ref.cutoff, f"must be below the Nyquist frequency {0.5 / ep.step:g} Hz")
@@ -311,6 +337,9 @@ def parameter_kind(key: str) -> tuple[Any, tuple[float, bool] | None, float | No
         lower = {"gain": (0.0, True)}.get(key.rsplit(".", 1)[-1])
     if kind == "seed":
         lower, upper = (0.0, True), SEED_LIMIT - 1
+    if kind == "int":
+        lo, hi = check.bounds
+        lower, upper = (float(lo), True), hi
     return kind, lower, upper
 
 

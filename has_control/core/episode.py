@@ -23,12 +23,13 @@ from numba.cpython.unsafe.tuple import tuple_setitem
 from numba.np.unsafe.ndarray import to_fixed_tuple
 
 from has_control.core.abc_controller import abc_law, adapt
-from has_control.core.actuator import diverged, valve_plant_step
+from has_control.core.actuator import diverged, spool_plant_step, valve_plant_step
 from has_control.core.cost import Score, cost_increment, metric_finish, metric_update
 from has_control.core.jit import INLINE, KERNEL, LEAF
-from has_control.core.noise import measurement_noise, noise_on
+from has_control.core.noise import measurement_noise, noise_on, sensor_readings, sensors_on
 from has_control.core.params import (
-    A1_INIT, A2_INIT, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_PLANT, N_SAMPLES, N_SENSOR, WIN_END, WIN_START,
+    A1_INIT, A2_INIT, DELAY, DELAY_RING, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_PLANT, N_SAMPLES, N_SENSOR,
+    STRUCTURE, STRUCTURE_FULL, STRUCTURE_REFERENCE, STRUCTURE_SPOOL, SUBSTEPS, WIN_END, WIN_START,
     X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
 )
 from has_control.core.reference import check_road_memory, reference, reference_array
@@ -98,6 +99,70 @@ def sample_step(x1, x2, x3, x4, xv, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, 
     return y, v, p1, p2, sv, b1, b2, x3d, j, mean, m2, peak, bad, u, e1, e2, e3
 
 
+# rows of a block's lane state (the first _ROWS are the reference kernel's; below)
+_X1, _X2, _X3, _X4, _XV, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 = range(16)
+_ROWS = 16
+#: ... then the general path's: the spool's velocity, the previous position and
+#: velocity readings, and the ring of the last DELAY_RING commands.
+_WV, _YPREV, _VPREV = range(_ROWS, _ROWS + 3)
+_RING = _ROWS + 3
+_GENERAL_ROWS = _RING + DELAY_RING
+
+
+@njit(**INLINE)
+def general_sample_step(s, q, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp, sp, ep,
+                        dt, y_limit):
+    """:func:`sample_step` of a plant of any structure and sensors of any kind,
+    on column q of lane state ``s`` (rows _X1 … _RING + DELAY_RING − 1), at
+    sample i: the controller reads :func:`~has_control.core.noise.sensor_readings`,
+    the command goes into the ring at slot i mod DELAY_RING and the plant
+    (:func:`~has_control.core.actuator.spool_plant_step`) gets the one of
+    sample i − d (0 before sample 0: the ring starts zeroed). Updates ``s``
+    in place; returns (diverged, u, e1, e2, e3) as :func:`sample_step` does.
+    The same arithmetic per candidate as sample_step's where the options are off."""
+    x1, x2, x3, x4 = s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q]
+    a1_hat, a2_hat = s[_A1, q], s[_A2, q]
+    has_prev = i > 0
+    m1, m2, m3, m4 = sensor_readings(x1, x2, x3, x4, n1, n2, n3, n4, noisy, sp, s[_YPREV, q], s[_VPREV, q],
+                                     has_prev, dt)
+    s[_YPREV, q] = m1
+    s[_VPREV, q] = m2
+    u, _, e2, e3, rate1, rate2, x3d = abc_law(
+        m1, m2, m3, m4, a1_hat, a2_hat, s[_X3D, q], has_prev, r0, r1, r2, r3, s[_K1, q], s[_K2, q], s[_K3, q],
+        ap, cp, dt)
+    e1 = r0 - x1
+    s[_J, q] += cost_increment(e1, u, ep)
+    _, mean_w, m2_w, peak_w = metric_update(count - 1.0, s[_MEAN, q], s[_M2, q], s[_PEAK, q], e1)
+    if in_window:
+        s[_MEAN, q] = mean_w
+        s[_M2, q] = m2_w
+        s[_PEAK, q] = peak_w
+    s[_A1, q], s[_A2, q] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
+    s[_X3D, q] = x3d
+    s[_RING + i % DELAY_RING, q] = u
+    applied = s[_RING + (i + DELAY_RING - int(pp[DELAY])) % DELAY_RING, q]
+    y, v, p1, p2, sv, wv = spool_plant_step(x1, x2, x3, x4, s[_XV, q], s[_WV, q], applied, pp, dt)
+    s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_XV, q], s[_WV, q] = y, v, p1, p2, sv, wv
+    bad = diverged(y, v, p1, p2, y_limit) | (not math.isfinite(u))
+    return bad, u, e1, e2, e3
+
+
+@njit(**LEAF)
+def _structure(pp, sp):
+    """The structure the kernels run (STRUCTURE_*): the plant's, or with
+    quantised or derived sensor readings at least STRUCTURE_SPOOL (the general path)."""
+    st = int(pp[STRUCTURE])
+    return STRUCTURE_SPOOL if (st == STRUCTURE_REFERENCE) & sensors_on(sp) else st
+
+
+@njit(**LEAF)
+def _as_structure(pp, st):
+    """``pp`` (a tuple) with its structure the constant ``st`` (and one substep
+    below STRUCTURE_FULL): a lane loop given it compiles the other structures away."""
+    pp = tuple_setitem(pp, STRUCTURE, float(st))
+    return pp if st == STRUCTURE_FULL else tuple_setitem(pp, SUBSTEPS, 1.0)
+
+
 @njit(**LEAF)
 def _constants(ap, pp, cp, sp, ep):
     """The parameter arrays as tuples (in a loop, their entries are values
@@ -136,6 +201,37 @@ def _reference_ahead(rp, start, n, dt, ref):
     return ahead
 
 
+@njit(**INLINE)
+def _episode_general(k1, k2, k3, ap, pp, cp, rp, sp, seed, x0, trace, record, noisy, ep, dt, n, lo, hi, y_limit):
+    """:func:`_episode` through :func:`general_sample_step` (one lane), for a
+    plant or sensors beyond the reference structure."""
+    s = np.zeros((_GENERAL_ROWS, 1))
+    s[_X1, 0], s[_X2, 0], s[_X3, 0], s[_X4, 0] = x0[0], x0[1], x0[2], x0[3]
+    s[_A1, 0] = cp[A1_INIT]
+    s[_A2, 0] = cp[A2_INIT]
+    s[_K1, 0], s[_K2, 0], s[_K3, 0] = k1, k2, k3
+    count = 0.0
+    ref = np.empty((_AHEAD, 4))
+    for start in range(0, n, _AHEAD):
+        ahead = _reference_ahead(rp, start, n, dt, ref)
+        for a in range(ahead):
+            i = start + a
+            r0, r1, r2, r3 = ref[a, 0], ref[a, 1], ref[a, 2], ref[a, 3]
+            n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
+            in_window = lo <= i <= hi
+            if in_window:
+                count += 1.0
+            x1, x2, x3, x4, a1_hat, a2_hat = s[_X1, 0], s[_X2, 0], s[_X3, 0], s[_X4, 0], s[_A1, 0], s[_A2, 0]
+            bad, u, e1, e2, e3 = general_sample_step(s, 0, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count,
+                                                     in_window, ap, pp, cp, sp, ep, dt, y_limit)
+            if record:
+                put_trace_row(trace[i], i * dt, r0, x1, x2, x3, x4, u, e1, e2, e3, a1_hat, a2_hat)
+            if bad:
+                return math.inf, math.inf, math.inf, math.inf, i + 1, True
+    e_max, e_mu, e_sigma = metric_finish(count, s[_MEAN, 0], s[_M2, 0], s[_PEAK, 0])
+    return s[_J, 0], e_max, e_mu, e_sigma, n, False
+
+
 @njit(**KERNEL)
 def _episode(k1, k2, k3, ap, pp, cp, rp, sp, seed, ep, x0, trace):
     """Run one episode; fill ``trace`` rows if it has any (the true state, the
@@ -143,6 +239,10 @@ def _episode(k1, k2, k3, ap, pp, cp, rp, sp, seed, ep, x0, trace):
     (J, e_max, e_μ, e_σ, samples, diverged)."""
     ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
     record = trace.shape[0] > 0
+    st = _structure(pp, sp)
+    if st != STRUCTURE_REFERENCE:
+        return _episode_general(k1, k2, k3, ap, pp, cp, rp, sp, seed, x0, trace, record, noisy, ep, dt, n, lo, hi,
+                                y_limit)
     x1 = x0[0]
     x2 = x0[1]
     x3 = x0[2]
@@ -176,11 +276,6 @@ def _episode(k1, k2, k3, ap, pp, cp, rp, sp, seed, ep, x0, trace):
     return j, e_max, e_mu, e_sigma, n, False
 
 
-# rows of a block's lane state
-_X1, _X2, _X3, _X4, _XV, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 = range(16)
-_ROWS = 16
-
-
 @njit(**INLINE)
 def _lanes(s, has_prev, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp, ep, dt, y_limit,
            mark):
@@ -192,6 +287,17 @@ def _lanes(s, has_prev, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window,
             s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_XV, q], s[_A1, q], s[_A2, q], s[_X3D, q], has_prev,
             r0, r1, r2, r3, n1, n2, n3, n4, noisy, s[_K1, q], s[_K2, q], s[_K3, q],
             s[_J, q], s[_MEAN, q], s[_M2, q], s[_PEAK, q], count, in_window, ap, pp, cp, ep, dt, y_limit)
+        dead = s[_DEAD, q]
+        s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
+
+
+@njit(**INLINE)
+def _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp, sp, ep, dt, y_limit,
+                   mark):
+    """:func:`_lanes` through :func:`general_sample_step`."""
+    for q in range(LANES):
+        bad, _, _, _, _ = general_sample_step(s, q, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window,
+                                              ap, pp, cp, sp, ep, dt, y_limit)
         dead = s[_DEAD, q]
         s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
 
@@ -212,7 +318,10 @@ def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
     backward = int(cp[X3D_MODE]) == X3D_BACKWARD
     cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
     cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
-    s = np.zeros((_ROWS, LANES))
+    st = _structure(pp, sp)
+    pp_spool = _as_structure(pp, STRUCTURE_SPOOL)
+    pp_full = _as_structure(pp, STRUCTURE_FULL)
+    s = np.zeros((_ROWS if st == STRUCTURE_REFERENCE else _GENERAL_ROWS, LANES))
     for q in range(LANES):
         p = min(first + q, last - 1)
         s[_X1, q] = x0[0]
@@ -237,12 +346,24 @@ def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
             in_window = lo <= i <= hi
             if in_window:
                 count += 1.0
-            if backward:
-                _lanes(s, i > 0, ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3], n1, n2, n3, n4, noisy, count,
-                       in_window, ap, pp, cp_backward, ep, dt, y_limit, i + 1.0)
+            r0, r1, r2, r3 = ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3]
+            if st == STRUCTURE_REFERENCE:
+                if backward:
+                    _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count,
+                           in_window, ap, pp, cp_backward, ep, dt, y_limit, i + 1.0)
+                else:
+                    _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count,
+                           in_window, ap, pp, cp_analytic, ep, dt, y_limit, i + 1.0)
+            elif st == STRUCTURE_SPOOL:
+                if backward:
+                    _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_spool,
+                                   cp_backward, sp, ep, dt, y_limit, i + 1.0)
+                else:
+                    _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_spool,
+                                   cp_analytic, sp, ep, dt, y_limit, i + 1.0)
             else:
-                _lanes(s, i > 0, ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3], n1, n2, n3, n4, noisy, count,
-                       in_window, ap, pp, cp_analytic, ep, dt, y_limit, i + 1.0)
+                _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_full,
+                               cp, sp, ep, dt, y_limit, i + 1.0)
             alive = 0
             for q in range(LANES):
                 alive += s[_DEAD, q] == 0.0
@@ -336,8 +457,8 @@ class EpisodeArrays:
     @classmethod
     def from_config(cls, cfg: Config) -> "EpisodeArrays":
         return cls(cfg.actuator.as_array(), cfg.plant.as_array(cfg.actuator), cfg.adaptation.as_array(),
-                   reference_array(cfg.reference, cfg.episode), cfg.noise.as_array(), int(cfg.noise.seed),
-                   cfg.episode.as_array(), cfg.plant.actuator(cfg.actuator).initial_state())
+                   reference_array(cfg.reference, cfg.episode), cfg.noise.as_array(cfg.episode.step),
+                   int(cfg.noise.seed), cfg.episode.as_array(), cfg.plant.actuator(cfg.actuator).initial_state())
 
     def kernel_args(self) -> tuple:
         """(ap, pp, cp, rp, sp, seed, ep, x0): the arguments the kernels take after the gains."""

@@ -19,6 +19,7 @@ import numpy as np
 from numba import njit
 
 from has_control.core.jit import INLINE, LEAF
+from has_control.core.params import RESOLUTION_P, RESOLUTION_Y, VELOCITY_ALPHA, VELOCITY_DERIVED
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -65,3 +66,36 @@ def measurement_noise(sp, seed, i):
     z0, z1 = _normal_pair(seed, i, 0)
     z2, z3 = _normal_pair(seed, i, 2)
     return sp[0] * z0, sp[1] * z1, sp[2] * z2, sp[3] * z3
+
+
+@njit(**LEAF)
+def sensors_on(sp):
+    """Whether the sensor array ``sp`` asks for quantisation or a derived velocity
+    (what only the kernels' general path reads)."""
+    return (sp[RESOLUTION_Y] != 0.0) | (sp[RESOLUTION_P] != 0.0) | (sp[VELOCITY_DERIVED] != 0.0)
+
+
+@njit(**LEAF)
+def quantised(value, resolution):
+    """``value`` rounded to the nearest multiple of ``resolution`` (> 0; ties to even), else as it is."""
+    return np.rint(value / resolution) * resolution if resolution > 0.0 else value
+
+
+@njit(**INLINE)
+def sensor_readings(x1, x2, x3, x4, n1, n2, n3, n4, noisy, sp, y_prev, v_prev, has_prev, dt):
+    """What the controller reads of the true state (y [m], ẏ [m/s], P1, P2 [Pa]):
+    plus the noise n1..n4 when ``noisy``, position and pressures rounded to
+    their resolutions, and with a derived velocity the backward difference
+    (y_i − y_{i−1})/Δt of the position readings (``y_prev`` the previous one;
+    0 at the first sample, filter or not), filtered v_i = v_{i−1} + α(d_i − v_{i−1})
+    (``v_prev``; α = 1: unfiltered, v_i = d_i exactly). Returns the four
+    readings; the second reading and the position reading are the next
+    sample's ``v_prev`` and ``y_prev``."""
+    m1 = quantised(x1 + n1 if noisy else x1, sp[RESOLUTION_Y])
+    m2 = x2 + n2 if noisy else x2
+    m3 = quantised(x3 + n3 if noisy else x3, sp[RESOLUTION_P])
+    m4 = quantised(x4 + n4 if noisy else x4, sp[RESOLUTION_P])
+    d = (m1 - y_prev) / dt if has_prev else 0.0
+    alpha = sp[VELOCITY_ALPHA]
+    v = d if (alpha >= 1.0) | (not has_prev) else v_prev + alpha * (d - v_prev)
+    return m1, v if sp[VELOCITY_DERIVED] != 0.0 else m2, m3, m4

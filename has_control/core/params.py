@@ -21,12 +21,25 @@ MASS, AREA_CAP, AREA_ROD, BULK, DAMPING, LEAKAGE, V_CAP0, V_ROD0, GRAVITY, \
 N_ACTUATOR = 12
 
 # --- plant array layout: the actuator's (true) parameters, then its valve ---
-VALVE_LIMIT, VALVE_RATE = N_ACTUATOR, N_ACTUATOR + 1
-N_PLANT = N_ACTUATOR + 2
+VALVE_LIMIT, VALVE_RATE, VALVE_OMEGA, VALVE_ZETA, DELAY, SUBSTEPS, FRICTION_COULOMB, FRICTION_STRIBECK, \
+    STRIBECK_VELOCITY, FRICTION_SMOOTHING, STRUCTURE = range(N_ACTUATOR, N_ACTUATOR + 11)
+N_PLANT = N_ACTUATOR + 11
+#: The plant's structure (pp[STRUCTURE]), what the kernels specialise on: the
+#: reference plant (ideal or first-order valve, limit: SPEC's step), a plant
+#: with a second-order spool and/or a delayed command (one RK4 step a sample,
+#: no friction), or any plant (friction, substeps).
+STRUCTURE_REFERENCE, STRUCTURE_SPOOL, STRUCTURE_FULL = 0, 1, 2
+#: The longest transport delay of the command [samples]; the kernels' ring holds DELAY_RING commands.
+DELAY_MAX = 16
+DELAY_RING = DELAY_MAX + 1
+#: The most RK4 substeps a sample.
+SUBSTEPS_MAX = 64
 
 # --- sensor (measurement noise) array layout --------------------------------
-NOISE_Y, NOISE_YDOT, NOISE_P1, NOISE_P2 = range(4)
-N_SENSOR = 4
+NOISE_Y, NOISE_YDOT, NOISE_P1, NOISE_P2, RESOLUTION_Y, RESOLUTION_P, VELOCITY_DERIVED, VELOCITY_ALPHA = range(8)
+N_SENSOR = 8
+#: How the velocity reading is made (noise.velocity): measured, or the backward difference of the position reading.
+VELOCITY_SOURCES = {"measured": 0, "derived": 1}
 
 # --- controller (adaptation) array layout ----------------------------------
 SIGMA1, SIGMA2, A1_INIT, A2_INIT, A1_MIN, A2_MIN, A1_MAX, A2_MAX, X3D_MODE = range(9)
@@ -113,8 +126,19 @@ class Plant:
     model's (``actuator.*``) when None. valve_limit u_max [m]: the spool
     travel, |u| ≤ u_max (0: no limit); valve_time_constant τ_v [s]: a
     first-order valve, τ_v·ẋv = u − xv, stepped as a fifth state in the same
-    RK4 (0: an ideal valve, xv = u). The defaults are the reference
-    configuration: the plant is the model, the valve ideal.
+    RK4 (0: an ideal valve, xv = u).
+
+    valve_frequency f_n [Hz] and valve_damping_ratio ζ [-]: a second-order
+    spool, ẍv = ω_n²(u − xv) − 2ζω_n·ẋv with ω_n = 2π·f_n, xv and ẋv two more
+    states of the same RK4 step (0: not second order; exclusive with the
+    first-order lag); with a valve_limit the spool stops at ±u_max (its
+    velocity zeroed there). delay d [samples, 0..DELAY_MAX]: the valve gets
+    the command of d samples earlier (0 before the start). friction_coulomb
+    Fc [N], friction_stribeck Fs [N] (breakaway force), stribeck_velocity
+    v_s [m/s], friction_smoothing ε [m/s]: F = (Fc + (Fs − Fc)·e^(−(ẏ/v_s)²))
+    ·ẏ/√(ẏ² + ε²) against the motion. substeps: RK4 steps a sample (the
+    command held). The defaults are the reference configuration: the plant
+    is the model, the valve ideal (docs/model.md).
     """
 
     mass: float | None = None
@@ -125,6 +149,25 @@ class Plant:
     valve_gain: float | None = None
     valve_limit: float = 0.0
     valve_time_constant: float = 0.0
+    valve_frequency: float = 0.0
+    valve_damping_ratio: float = 0.7
+    delay: int = 0
+    friction_coulomb: float = 0.0
+    friction_stribeck: float = 0.0
+    stribeck_velocity: float = 0.01
+    friction_smoothing: float = 1.0e-4
+    substeps: int = 1
+
+    def has_friction(self) -> bool:
+        return self.friction_coulomb != 0.0 or self.friction_stribeck != 0.0
+
+    def structure(self) -> int:
+        """What the kernels specialise on (STRUCTURE_*): the simplest that holds this plant."""
+        if self.has_friction() or self.substeps != 1:
+            return STRUCTURE_FULL
+        if self.valve_frequency > 0.0 or self.delay != 0:
+            return STRUCTURE_SPOOL
+        return STRUCTURE_REFERENCE
 
     def actuator(self, model: Actuator) -> Actuator:
         """The plant's own parameters: ``model`` with this plant's overrides."""
@@ -133,9 +176,15 @@ class Plant:
 
     def as_array(self, model: Actuator) -> np.ndarray:
         """The plant array: :meth:`Actuator.as_array` of :meth:`actuator`, then
-        u_max [m] and 1/τ_v [1/s] (0 for an ideal valve)."""
+        u_max [m], 1/τ_v [1/s] (0 for an ideal valve), ω_n [rad/s] (0: not
+        second order), ζ, delay [samples], substeps, Fc [N], Fs [N], v_s [m/s],
+        ε [m/s] and the structure (STRUCTURE_*)."""
         rate = 1.0 / self.valve_time_constant if self.valve_time_constant > 0.0 else 0.0
-        return np.concatenate([self.actuator(model).as_array(), [self.valve_limit, rate]])
+        omega = 2.0 * math.pi * self.valve_frequency
+        return np.concatenate([self.actuator(model).as_array(), [
+            self.valve_limit, rate, omega, self.valve_damping_ratio, float(self.delay), float(self.substeps),
+            self.friction_coulomb, self.friction_stribeck, self.stribeck_velocity, self.friction_smoothing,
+            float(self.structure())]])
 
 
 @dataclass(frozen=True)
@@ -159,9 +208,19 @@ class Noise:
     pressure_rod: float = 0.0
     seed: int = 0
     added_by: str = "controller"
+    position_resolution: float = 0.0
+    pressure_resolution: float = 0.0
+    velocity_source: str = "measured"
+    velocity_filter_frequency: float = 0.0
 
-    def as_array(self) -> np.ndarray:
-        return np.array([self.position, self.velocity, self.pressure_cap, self.pressure_rod], dtype=np.float64)
+    def as_array(self, step: float = 3.0e-4) -> np.ndarray:
+        """The sensor array: the four standard deviations, the two resolutions,
+        1 for a derived velocity (else 0) and its filter's α at sample step ``step`` [s] (1: unfiltered)."""
+        f = self.velocity_filter_frequency
+        alpha = 1.0 - math.exp(-2.0 * math.pi * f * step) if f > 0.0 else 1.0
+        return np.array([self.position, self.velocity, self.pressure_cap, self.pressure_rod,
+                         self.position_resolution, self.pressure_resolution,
+                         float(VELOCITY_SOURCES[self.velocity_source]), alpha], dtype=np.float64)
 
 
 @dataclass(frozen=True)

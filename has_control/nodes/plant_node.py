@@ -159,7 +159,7 @@ class PlantNode(LifecycleNode):
         self._state_msg = STATE_LAYOUT.buffer()
         # noise.added_by plant: ``state`` carries the sensors' readings, ``true_state`` the state
         self.measured = cfg.noise.added_by == "plant"
-        self.sp, self.seed = cfg.noise.as_array(), int(cfg.noise.seed)
+        self.sp, self.seed = cfg.noise.as_array(cfg.episode.step), int(cfg.noise.seed)
         self._true_msg = STATE_LAYOUT.buffer()
         self._clock_msg = CLOCK_LAYOUT.buffer()
         self._scratch = steps.scratch()
@@ -281,7 +281,7 @@ class PlantNode(LifecycleNode):
     def _initial_state(self) -> np.ndarray:
         """(y, ẏ, P1, P2, spool): the plant at rest (SPEC §4, with its own
         parameters), the spool centred."""
-        return np.append(self.actuator.initial_state(), 0.0)
+        return steps.plant_state(self.actuator.initial_state())
 
     def start(self) -> None:
         """Run an episode from the current state (lock-step: publishes it now;

@@ -21,15 +21,15 @@ import numpy as np
 from numba import njit
 
 from has_control.core.abc_controller import abc_law, adapt
-from has_control.core.actuator import diverged, joint_state, valve_plant_step
+from has_control.core.actuator import diverged, joint_state, spool_plant_step, valve_plant_step
 from has_control.core.jit import KERNEL
-from has_control.core.noise import measurement_noise, noise_on
+from has_control.core.noise import measurement_noise, noise_on, sensor_readings, sensors_on
 from has_control.core.reference import reference
 from has_control.wire.topics import (CLOCK_LAYOUT, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, REFERENCE_LAYOUT,
                                      STATE_LAYOUT)
 from has_control.wire.codec import MALFORMED, NOT_FINITE, get_f64, matches, put_f64, put_stamp, sample_of_stamp
 from has_control.core.episode import EpisodeArrays, TRACE_COLUMNS, put_trace_row
-from has_control.core.params import Config
+from has_control.core.params import DELAY, DELAY_RING, STRUCTURE, STRUCTURE_REFERENCE, Config
 
 # Layouts as module constants: numba freezes them into the compiled code.
 _STATE_T, _STATE_FIXED, _STATE_V = STATE_LAYOUT.template, STATE_LAYOUT.fixed, STATE_LAYOUT.values
@@ -38,9 +38,24 @@ _INTERNALS_V = CONTROLLER_STATE_LAYOUT.values
 _REFERENCE_V = REFERENCE_LAYOUT.values
 assert CLOCK_LAYOUT.stamped and len(CLOCK_LAYOUT.values) == 0
 
-#: Slots of the controller's memory array (float64).
-A1_HAT, A2_HAT, X3D_PREV, HAS_PREV, SCRATCH = range(5)
-CONTROLLER_MEMORY = 5
+#: Slots of the controller's memory array (float64); Y_PREV, V_PREV: the
+#: previous position and velocity readings (quantised or derived sensors).
+A1_HAT, A2_HAT, X3D_PREV, HAS_PREV, SCRATCH, Y_PREV, V_PREV = range(7)
+CONTROLLER_MEMORY = 7
+
+#: Slots of the plant's state array: (y, ẏ, P1, P2), the spool (xv, ẋv), the
+#: commands received, the previous position and velocity readings (sensors of
+#: the plant) and the ring of the last DELAY_RING commands.
+XS_XV, XS_WV, XS_COUNT, XS_YPREV, XS_VPREV, XS_RING = 4, 5, 6, 7, 8, 9
+PLANT_STATE = XS_RING + DELAY_RING
+
+
+def plant_state(x0) -> np.ndarray:
+    """The plant's state array at (y, ẏ, P1, P2) = ``x0``: spool centred and at
+    rest, no command received (the ring zeroed)."""
+    x = np.zeros(PLANT_STATE)
+    x[:4] = x0[:4]
+    return x
 
 
 def scratch() -> np.ndarray:
@@ -64,10 +79,22 @@ def encode_state(x, ap, sample, step_ns, state, clock, scr):
 
 @njit(**KERNEL)
 def plant_sample(x, u, pp, dt, y_limit, sample, step_ns, state, clock, scr):
-    """Advance x = (y, ẏ, P1, P2, spool) in place by one step of the plant of
-    plant array ``pp`` with valve command u [m] and encode the new state as
-    sample ``sample`` (the next index). Returns True if it diverged."""
-    y, v, p1, p2, sv = valve_plant_step(x[0], x[1], x[2], x[3], x[4], u, pp, dt)
+    """Advance the plant's state array x (:func:`plant_state`) in place by one
+    step of the plant of plant array ``pp`` with valve command u [m] and encode
+    the new state as sample ``sample`` (the next index). A plant of reference
+    structure steps as the episode kernel's reference path; any other as its
+    general path: u goes into the ring, the plant gets the command of
+    pp[DELAY] commands earlier (a reference plant reads and writes x[:5]
+    only, as before the options). Returns True if it diverged."""
+    if pp[STRUCTURE] == STRUCTURE_REFERENCE:
+        y, v, p1, p2, sv = valve_plant_step(x[0], x[1], x[2], x[3], x[4], u, pp, dt)
+    else:
+        c = int(x[XS_COUNT])
+        x[XS_RING + c % DELAY_RING] = u
+        x[XS_COUNT] = c + 1
+        applied = x[XS_RING + (c + DELAY_RING - int(pp[DELAY])) % DELAY_RING]
+        y, v, p1, p2, sv, wv = spool_plant_step(x[0], x[1], x[2], x[3], x[4], x[XS_WV], applied, pp, dt)
+        x[XS_WV] = wv
     x[0] = y
     x[1] = v
     x[2] = p1
@@ -79,10 +106,19 @@ def plant_sample(x, u, pp, dt, y_limit, sample, step_ns, state, clock, scr):
 
 @njit(**KERNEL)
 def encode_measured(x, ap, sample, step_ns, sp, seed, state, clock, scr):
-    """The sensors' readings of state x = (y, ẏ, P1, P2) of ``sample``: x plus
+    """The sensors' readings of state x (:func:`plant_state`) of ``sample``: x plus
     the measurement noise of that sample (sensor array ``sp``, ``seed``; the
-    values the episode kernel adds for the law), into the state message."""
+    values the episode kernel adds for the law), quantised and with a derived
+    velocity when ``sp`` asks (the previous readings kept in x; call once a
+    sample), into the state message."""
     n1, n2, n3, n4 = measurement_noise(sp, seed, sample)
+    if sensors_on(sp):
+        m1, m2, m3, m4 = sensor_readings(x[0], x[1], x[2], x[3], n1, n2, n3, n4, noise_on(sp), sp, x[XS_YPREV],
+                                         x[XS_VPREV], sample > 0, step_ns / 1e9)
+        x[XS_YPREV] = m1
+        x[XS_VPREV] = m2
+        encode_state((m1, m2, m3, m4), ap, sample, step_ns, state, clock, scr)
+        return
     encode_state((x[0] + n1, x[1] + n2, x[2] + n3, x[3] + n4), ap, sample, step_ns, state, clock, scr)
 
 
@@ -132,9 +168,16 @@ def controller_sample(data, mem, gains, ap, cp, rp, sp, seed, dt, step_ns, comma
     a1_hat = mem[A1_HAT]
     a2_hat = mem[A2_HAT]
     m1, m2, m3, m4 = x1, x2, p1, p2
-    if noise_on(sp):
+    noisy = noise_on(sp)
+    if noisy:
         n1, n2, n3, n4 = measurement_noise(sp, seed, i)
         m1, m2, m3, m4 = x1 + n1, x2 + n2, p1 + n3, p2 + n4
+    if sensors_on(sp):
+        n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
+        m1, m2, m3, m4 = sensor_readings(x1, x2, p1, p2, n1, n2, n3, n4, noisy, sp, mem[Y_PREV], mem[V_PREV],
+                                         i > 0, dt)
+        mem[Y_PREV] = m1
+        mem[V_PREV] = m2
     u, e1, e2, e3, rate1, rate2, x3d = abc_law(
         m1, m2, m3, m4, a1_hat, a2_hat, mem[X3D_PREV], mem[HAS_PREV] > 0.0,
         r0, r1, r2, r3, gains[0], gains[1], gains[2], ap, cp, dt)
@@ -163,7 +206,7 @@ def warm_up() -> None:
     arr = EpisodeArrays.from_config(cfg)
     step_ns = cfg.episode.step_ns
     state, clock, scr = STATE_LAYOUT.buffer(), CLOCK_LAYOUT.buffer(), scratch()
-    x = np.append(arr.x0, 0.0)
+    x = plant_state(arr.x0)
     encode_state(x, arr.plant, 0, step_ns, state, clock, scr)
     plant_sample(x, 0.0, arr.plant, cfg.episode.step, cfg.episode.y_limit, 1, step_ns, state, clock, scr)
     encode_measured(x, arr.plant, 1, step_ns, arr.sensor, arr.seed, state, clock, scr)
