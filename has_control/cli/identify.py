@@ -16,8 +16,14 @@ HELP = "estimate plant parameters from recorded runs"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bags", nargs="+", metavar="BAG", help="recorded runs (bag directories or .mcap files)")
     p.add_argument("--estimate", nargs="+", metavar="KEY",
-                   help="plant parameters to estimate (default: mass damping bulk_modulus leakage valve_gain "
-                        "valve_time_constant; also supply_pressure)")
+                   help="plant parameters to estimate in the configured plant's structure (default: the "
+                        "structure is selected; mass damping bulk_modulus leakage valve_gain valve_time_constant "
+                        "with --structure given; also supply_pressure, valve_frequency, valve_damping_ratio, "
+                        "friction_coulomb)")
+    p.add_argument("--structure", choices=("auto", "given"), default="auto",
+                   help="auto (default): fit the candidate model structures (ideal, first- or second-order valve; "
+                        "a sample of delay; friction) and choose by BIC and the held-out fit; given: the "
+                        "configured plant's structure")
     add_config(p, "ros__parameters YAML overriding the parameters stored in the bags (repeatable)")
     p.add_argument("--bound", nargs=3, action="append", metavar=("KEY", "LOWER", "UPPER"),
                    help="bounds of an estimated parameter [SI] (default: a factor 4 around the model's value)")
@@ -51,15 +57,18 @@ def run(args) -> int:
             raise HasControlError(f"--bound {key} {lo} {hi}: expected two numbers") from None
     out = identify_bags(args.bags, estimate=args.estimate, configs=args.config or [], bounds=bounds,
                         tolerance=args.tolerance, max_evaluations=args.max_evaluations, out=args.out,
-                        validate_bag=args.validate, plot=args.plot)
+                        validate_bag=args.validate, plot=args.plot, structure=args.structure)
     result, val = out.result, out.validation
     if args.json:
         doc = result.as_json()
         doc["bags"] = list(args.bags)
         doc["out"] = str(out.params) if out.params else None
         doc["validation"] = val.as_json() if val else None
+        doc["structure"] = out.selection.as_json() if out.selection else None
         print(json.dumps(doc, allow_nan=False, default=_json_default))
         return 0
+    if out.selection:
+        print(out.selection.table())
     print(table(result, len(args.bags)))
     if out.params:
         print(f"wrote {out.params}")

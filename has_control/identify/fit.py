@@ -116,6 +116,8 @@ class IdentificationResult:
     passes: int
     given: dict[str, float] = field(default_factory=dict)
     verdict: Verdict | None = None
+    #: The last pass's residuals [SI], (segments, L + 1, 4) over every experiment (not in the JSON).
+    residuals: np.ndarray | None = field(default=None, repr=False)
 
     def values(self) -> dict[str, float]:
         """The plant to write: each estimate (a not-identifiable one at its prior)."""
@@ -254,7 +256,7 @@ def _with(keys, values, tau):
 
 def identify(experiments: list[Experiment], estimate=DEFAULT_KEYS, bounds: dict | None = None,
              tolerance: float = 0.02, tau_tolerance: float = 5e-5, max_evaluations: int = 200,
-             length: int = SEGMENT_SAMPLES) -> IdentificationResult:
+             length: int = SEGMENT_SAMPLES, start: dict | None = None) -> IdentificationResult:
     """Estimate ``estimate`` (keys of :data:`~.parameters.PARAMETERS`) from the
     experiments; see the module. ``bounds``: key -> (lower, upper) [SI]
     (default: :func:`~.parameters.default_bounds` of the prior); the prior
@@ -262,7 +264,8 @@ def identify(experiments: list[Experiment], estimate=DEFAULT_KEYS, bounds: dict 
     ``tolerance``: relative 95 % half-width of an identified parameter;
     ``tau_tolerance`` [s]: the same for τ_v. Raises IdentificationError (one
     line) on bad input and on a fit that does not converge within
-    ``max_evaluations`` residual evaluations per pass."""
+    ``max_evaluations`` residual evaluations per pass. ``start``: key -> where
+    the solver starts (default: the equation-error estimate, else the prior)."""
     t0 = time.perf_counter()
     keys = tuple(k for k in PARAMETERS if k in set(estimate))
     unknown = [k for k in estimate if k not in PARAMETERS]
@@ -295,9 +298,10 @@ def identify(experiments: list[Experiment], estimate=DEFAULT_KEYS, bounds: dict 
             f"{experiments[0].name}: {usable} usable samples (in segments of {length} steps with the pressures off "
             f"their bounds); estimating {len(keys)} parameters needs at least {need}: record a longer run")
     ee = equation_error(experiments, probe.starts, length)
+    given_start = dict(start or {})
     start = {}
     for k in keys:
-        v = ee.get(k, priors[k])
+        v = given_start.get(k, ee.get(k, priors[k]))
         lo, hi = bnds[k]
         start[k] = float(np.clip(v, lo, hi)) if math.isfinite(v) and v >= 0 else priors[k]
     free, fixed, why = list(keys), {}, {}
@@ -347,14 +351,18 @@ def identify(experiments: list[Experiment], estimate=DEFAULT_KEYS, bounds: dict 
     result = IdentificationResult(
         estimates, tuple(free), fit["correlation"], first_sv, fit["rms"], True, fit["message"], evaluations,
         fit["segments"], time.perf_counter() - t0, passes,
-        {k: given(cfg0, k) for k in PARAMETERS if k not in keys})
+        {**{k: given(cfg0, k) for k in PARAMETERS if k not in keys}, "delay": int(cfg0.plant.delay),
+         "friction_stribeck": float(cfg0.plant.friction_stribeck)},
+        residuals=np.concatenate(fit["raw"]) if fit["raw"] else None)
     corner = valve_corner_hz({**result.given, **result.values()})
     return apply_verdict(result, residual_verdict(experiments, fit["raw"], fit["starts"], length, corner))
 
 
 def valve_corner_hz(values: dict[str, float]) -> float:
-    """The valve's corner frequency [Hz]: 1/(2π·τ_v) of a first-order lag,
-    inf for an ideal valve."""
+    """The valve's corner frequency [Hz]: the natural frequency of a
+    second-order spool, 1/(2π·τ_v) of a first-order lag, inf for an ideal valve."""
+    if values.get("valve_frequency", 0.0) > 0.0:
+        return float(values["valve_frequency"])
     tau = values.get("valve_time_constant", 0.0)
     return 1.0 / (2.0 * math.pi * tau) if tau > 0.0 else math.inf
 
@@ -455,8 +463,13 @@ def _cov_with_null(vt, sv, tiny, s2):
 
 
 def identified_config(cfg: Config, result: IdentificationResult) -> Config:
-    """``cfg`` with its plant (``plant.*``) set to the identified values."""
-    changes = dict(result.values())
+    """``cfg`` with its plant (``plant.*``) set to the identified values, in
+    the identified structure (valve, delay, friction)."""
+    structural = ("valve_time_constant", "valve_frequency", "valve_damping_ratio", "friction_coulomb",
+                  "friction_stribeck", "delay")
+    changes = {**{k: v for k, v in result.given.items() if k in structural}, **result.values()}
+    if "friction_coulomb" in result.estimates:                       # identified without a Stribeck peak
+        changes["friction_stribeck"] = changes["friction_coulomb"]
     tau = changes.get("valve_time_constant")
     if tau is not None and 0.0 < tau < cfg.episode.step:       # the plant takes 0 or >= one step
         changes["valve_time_constant"] = 0.0 if tau < 0.5 * cfg.episode.step else cfg.episode.step

@@ -15,6 +15,9 @@ from has_control.identify.parameters import PARAMETERS
 #: The adaptation's bounds around an identified value: at least this factor
 #: either side, and never inside the value's 95 % interval.
 ADAPTATION_MARGIN = 0.2
+#: The plant's structure options, written whole so the file sets the identified structure.
+STRUCTURE_FIELDS = (("valve_time_constant", "s"), ("valve_frequency", "Hz"), ("valve_damping_ratio", "-"),
+                    ("delay", "samples"), ("friction_coulomb", "N"), ("friction_stribeck", "N"))
 #: The adapted parameters (â1, â2) and the plant keys they estimate.
 ADAPTED = ("damping", "leakage")
 
@@ -84,6 +87,11 @@ def params_yaml(cfg: Config, result: IdentificationResult, note: str = "") -> st
     lines.append("    plant:")
     for k in result.estimates:
         lines.append(f"      {k}: {float(getattr(plant, k))!r}   # [{PARAMETERS[k].unit}]")
+    for k, unit in STRUCTURE_FIELDS:              # the identified structure, whole
+        if k not in result.estimates:
+            v = getattr(plant, k)
+            lines.append(f"      {k}: {v!r}   # [{unit}] (the structure)" if isinstance(v, int) else
+                         f"      {k}: {float(v)!r}   # [{unit}] (the structure)")
     text = "\n".join(lines) + "\n"
     build_config(flatten(load_yaml(text, "identified parameters")["/**"]["ros__parameters"]),
                  source="identified parameters", base=cfg)
