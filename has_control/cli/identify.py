@@ -107,6 +107,7 @@ def table(result, experiments: int) -> str:
     lines.append("residual RMS: " + ", ".join(f"{k} {v:.3g}" for k, v in result.residual_rms.items()))
     v = result.verdict
     if v is not None:
+        # lazy: has_control.identify loads the kernels and SciPy; the other subcommands should not wait
         from has_control.identify.verdict import CORRELATION, HELD_OUT_FIT, LAGS, RESIDUAL_RATIO
         lines.append(f"{'residual analysis':<18}" + "".join(f"{c:>12}" for c in v.noise))
         lines.append(f"{'noise level':<18}" + "".join(f"{x:>12.3g}" for x in v.noise.values()))

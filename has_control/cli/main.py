@@ -16,7 +16,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from has_control import raise_interrupt
 from has_control.cli import (
-    bag_info, identify, landscape, plot, reproduce, replay, robustness, score, simulate, stack, tune,
+    bag_info, deploy, identify, landscape, plot, reproduce, replay, robustness, score, simulate, stack, tune,
 )
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
 from has_control.cli.node_help import print_help, wants_help
@@ -25,7 +25,7 @@ from has_control.common.errors import HasControlError
 #: The subcommands, in the order ``--help`` lists them.
 COMMANDS = {"simulate": simulate, "tune": tune, "robustness": robustness, "reproduce": reproduce,
             "stack": stack, "score": score, "bag-info": bag_info, "plot": plot, "replay": replay,
-            "identify": identify, "landscape": landscape}
+            "identify": identify, "landscape": landscape, "deploy": deploy}
 
 #: Node subcommands: the node's module under has_control.nodes; the rest of the line goes to ROS.
 NODES = {"plant": "plant_node", "controller": "controller_node", "tuner": "tuner_node"}

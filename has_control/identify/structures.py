@@ -142,6 +142,7 @@ def _with_structure(exps: list[Experiment], s: Structure, tau: float) -> list[Ex
 
 def _lag_start(exps: list[Experiment]) -> float:
     """The equation-error estimate of a first-order valve lag [s], where a spool's fit starts."""
+    # lazy: segments imports data, which this module's callers import first (no cycle; kept local to the start)
     from has_control.identify.equation_error import equation_error
     from has_control.identify.segments import SEGMENT_SAMPLES, segment_starts
     try:
@@ -154,6 +155,7 @@ def _lag_start(exps: list[Experiment]) -> float:
 
 def _parallel(fn, items) -> list:
     """``fn`` of each item on two threads (the compiled predictions release the GIL), in order."""
+    # lazy: only a structure search starts threads
     from concurrent.futures import ThreadPoolExecutor
     with ThreadPoolExecutor(2) as pool:
         return list(pool.map(fn, items))

@@ -1,0 +1,75 @@
+"""``has-control deploy``: a guarded move from the safe gains to the tuned ones
+on a simulated machine (its ``--config``), watched by the watchdog, with the
+fall-back, the measured J against the safe gains' and the predicted one."""
+from __future__ import annotations
+
+import json
+
+from has_control.cli.args import add_config, add_json, check_outputs, gains_arg, load, number
+from has_control.common.errors import HasControlError
+
+HELP = "deploy tuned gains in steps under a watchdog that falls back to the safe gains"
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--gains", nargs=3, required=True, metavar=("K1", "K2", "K3"), help="the tuned gains [1/s]")
+    p.add_argument("--safe", nargs=3, metavar=("K1", "K2", "K3"), default=("150", "158", "162"),
+                   help="the gains the machine runs safely [1/s] (default: the paper's manual 150 158 162)")
+    p.add_argument("--steps", type=number(1, 100, int), default=4, metavar="N", help="steps (default 4)")
+    p.add_argument("--settle", type=number(1e-3, 3600.0), default=1.0, metavar="S",
+                   help="seconds on the safe gains before the first step (default 1)")
+    p.add_argument("--hold", type=number(1e-3, 3600.0), default=1.0, metavar="S",
+                   help="seconds each step is held (default 1)")
+    p.add_argument("--hf-rms", type=number(1e-9, 1.0), default=5e-4, metavar="M",
+                   help="trip when the command's RMS above 20 Hz exceeds this [m] (default 5e-4)")
+    p.add_argument("--stop-share", type=number(1e-6, 1.0), default=0.05, metavar="R",
+                   help="trip when this share of the last 20 ms has the spool at its stop (default 0.05)")
+    p.add_argument("--e1-max", type=number(1e-9, 1.0), default=0.01, metavar="M",
+                   help="trip when |e1| exceeds this [m] (default 0.01)")
+    p.add_argument("--predicted", type=number(0.0), metavar="J", help="the J the tuner predicted: flag a gap over 2x")
+    p.add_argument("--record", metavar="DIR", help="write the guarded run as a bag")
+    add_config(p, "ros__parameters YAML of the machine (plant.*) and the run (repeatable)")
+    add_json(p)
+
+
+def run(args) -> int:
+    # lazy: the deployment's kernels load numba's compiled code (~1 s); --help should not wait
+    from has_control.deploy.guarded import DeploymentPlan, deploy_in_process
+    from has_control.deploy.watchdog import WatchdogLimits
+    check_outputs(args, directories=("record",))
+    cfg = load(argparse_duration(args))
+    plan = DeploymentPlan(gains_arg(args.safe, "--safe"), gains_arg(args.gains), args.steps, args.settle, args.hold)
+    limits = WatchdogLimits(hf_rms=args.hf_rms, stop_share=args.stop_share, e1_max=args.e1_max,
+                            valve_limit=cfg.plant.valve_limit)
+    try:
+        res = deploy_in_process(cfg, plan, limits, args.predicted, keep_trace=bool(args.record))
+    except ValueError as exc:
+        raise HasControlError(str(exc)) from None
+    if args.record:
+        _record(args.record, res, cfg)
+    if args.json:
+        print(json.dumps(res.as_json()))
+    else:
+        print("\n".join(res.lines()))
+        if args.record:
+            print(f"wrote {args.record}")
+    return 0
+
+
+def argparse_duration(args):
+    args.duration = None
+    return args
+
+
+def _record(directory, res, cfg) -> None:
+    # lazy: the bag writer and the episode module, only with --record
+    from has_control.bag import BagWriter, PARAMETERS_KEY, parameters_json, write_trace
+    from has_control.config import with_horizon
+    from has_control.core.cost import Score
+    from has_control.core.episode import Trace
+    from has_control.core.params import Gains
+    cfg = with_horizon(cfg, max(cfg.episode.horizon, res.plan.duration()))
+    w = BagWriter(directory, {PARAMETERS_KEY: parameters_json(cfg)})
+    write_trace(w, Trace(res.trace[:, :12].copy(), Score(res.J, 0.0, 0.0, 0.0, len(res.trace), False),
+                         Gains(*res.final_gains)), cfg)
+    w.close()
