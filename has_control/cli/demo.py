@@ -7,7 +7,10 @@ ROS parameters, runs the validation episode through the node graph recorded
 to a rosbag2 MCAP bag, and scores it from the bag. Beside it, the paper's
 PSO+CP+TVAC (80 particles x 100 iterations) tunes the same objective: J,
 evaluations, time and the bound diagnostics of each. Then it prints manual vs
-tuned vs the paper's Table 3 with the bag's and the figures' paths.
+tuned vs the paper's Table 3 with the bag's and the figures' paths. Last,
+the machine's path (:mod:`has_control.cli.machine_path`): experiment ->
+identify -> tune -> guarded deployment on a simulated machine whose valve is
+second order.
 """
 from __future__ import annotations
 
@@ -16,6 +19,7 @@ import shutil
 import sys
 from pathlib import Path
 
+from has_control.cli.machine_path import machine_path
 from has_control.core.params import MANUAL_GAINS, PAPER_TABLE3, PAPER_TUNED_GAINS, Config
 from has_control.bag.series import run_series
 from has_control.core.episode import simulate
@@ -98,6 +102,9 @@ def main(argv=None) -> int:
     print()
     print(f"Session bag: {session_dir / SESSION} (has-control bag-info / score / replay --controller)")
     print("Figures: " + ", ".join(str(f) for f in figs))
+    print()
+    print("The machine's path (a simulated machine with a 100 Hz second-order servo valve, docs/deploy.md):")
+    machine_path(out / "machine", seed=args.seed)
     return 0
 
 
