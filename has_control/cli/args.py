@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 import re
 from contextlib import nullcontext
 
@@ -105,6 +106,38 @@ def check_outputs(args, files=(), directories=()) -> None:
                     check_output(path, what)
                 except HasControlError as exc:
                     raise HasControlError(f"--{name}: {exc}") from None
+
+
+def check_apart(args, outputs=(), inputs=()) -> None:
+    """Before the work: no output (options ``outputs``) is an input (options
+    ``inputs``, each a path or a list of paths), lies inside an input (a bag
+    directory), or is another output; no input is given twice. One line naming
+    the option and the path if so."""
+    def paths(name):
+        v = getattr(args, name, None)
+        return [] if v is None else [v] if isinstance(v, (str, Path)) else list(v)
+    seen_in: dict = {}
+    for name in inputs:
+        for p in paths(name):
+            real = Path(p).resolve()
+            if real in seen_in:
+                raise HasControlError(f"{_flag(name)} {p}: given twice (also as {seen_in[real]}): one recording "
+                                      "counted twice would narrow every interval")
+            seen_in[real] = f"{_flag(name)} {p}"
+    seen_out: dict = {}
+    for name in outputs:
+        for p in paths(name):
+            real = Path(p).resolve()
+            for src, where in seen_in.items():
+                if real == src or src in real.parents:
+                    raise HasControlError(f"--{name} {p}: would write into the input {where}")
+            if real in seen_out:
+                raise HasControlError(f"--{name} {p}: is also {seen_out[real]}: two outputs, one file")
+            seen_out[real] = f"--{name}"
+
+
+def _flag(name: str) -> str:
+    return "BAG" if name == "bags" else f"--{name}"
 
 
 def figure_path(text: str) -> str:

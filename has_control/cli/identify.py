@@ -6,7 +6,7 @@ import argparse
 import json
 import math
 
-from has_control.cli.args import add_config, add_json, check_outputs, figure_path
+from has_control.cli.args import add_config, add_json, check_apart, check_outputs, figure_path
 from has_control.common.errors import HasControlError
 
 
@@ -45,12 +45,15 @@ def run(args) -> int:
     if args.plot and not args.validate:
         raise HasControlError("--plot: needs --validate BAG (it shows the held-out run)")
     check_outputs(args, files=("out", "plot"))
+    check_apart(args, outputs=("out", "plot"), inputs=("bags", "validate", "config"))
     if args.max_evaluations < 1:
         raise HasControlError(f"--max-evaluations {args.max_evaluations}: must be >= 1")
     if not (0 < args.tolerance < 1):
         raise HasControlError(f"--tolerance {args.tolerance}: must be in (0, 1)")
     bounds = {}
     for key, lo, hi in args.bound or []:
+        if key in bounds:
+            raise HasControlError(f"--bound {key} {lo} {hi}: {key} is bounded twice")
         try:
             bounds[key] = (float(lo), float(hi))
         except ValueError:
@@ -65,7 +68,7 @@ def run(args) -> int:
         doc["out"] = str(out.params) if out.params else None
         doc["validation"] = val.as_json() if val else None
         doc["structure"] = out.selection.as_json() if out.selection else None
-        print(json.dumps(doc, allow_nan=False, default=_json_default))
+        print(json.dumps(finite_json(doc), allow_nan=False, default=_json_default))
         return 0
     if out.selection:
         print(out.selection.table())
@@ -82,7 +85,19 @@ def run(args) -> int:
 
 
 def _json_default(v):
-    return float(v)
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def finite_json(doc):
+    """``doc`` with every non-finite float as None (JSON has none; identify's documented value)."""
+    if isinstance(doc, dict):
+        return {k: finite_json(v) for k, v in doc.items()}
+    if isinstance(doc, (list, tuple)):
+        return [finite_json(v) for v in doc]
+    if isinstance(doc, float) and not math.isfinite(doc):
+        return None
+    return doc
 
 
 def _num(v: float) -> str:
