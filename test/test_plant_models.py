@@ -345,7 +345,7 @@ def test_the_shipped_files_are_the_reference_and_scenarios_take_the_new_keys():
 @pytest.mark.parametrize("added_by", ["controller", "plant"])
 def test_graph_equals_the_library_with_the_model_options(context, added_by):
     from has_control.nodes.stack import run_stack
-    cfg = _cfg({**CASES["everything, backward x3d"], "noise.added_by": added_by}, 0.3)
+    cfg = _cfg({**CASES["everything, backward x3d"], "noise.added_by": added_by}, 1.5)
     ref = simulate(cfg, MANUAL)
     run = run_stack(cfg, gains=MANUAL, context=context)
     np.testing.assert_array_equal(run.trace, ref.data)
