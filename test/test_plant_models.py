@@ -15,7 +15,7 @@ import pytest
 
 from has_control.common.errors import ConfigError
 from has_control.config import build_config, load_config, with_horizon
-from has_control.config.scenario_files import Scenario
+from has_control.config.scenario_files import Scenario, load_scenarios
 from has_control.core import episode as ep_mod
 from has_control.core.actuator import friction_force, spool_plant_step, valve_plant_step
 from has_control.core.episode import EpisodeArrays, _episode, evaluate, simulate
@@ -337,6 +337,19 @@ def test_the_shipped_files_are_the_reference_and_scenarios_take_the_new_keys():
                             ("noise.velocity_source", "derived"))).config(Config())
     assert cfg.plant.delay == 2 and cfg.plant.valve_frequency == 100.0 and cfg.noise.velocity_source == "derived"
     assert cfg.plant.structure() == STRUCTURE_SPOOL
+
+
+def test_a_scenario_file_draws_whole_delays_and_substeps(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text("scenarios:\n  late: {plant.delay: 3, plant.valve_frequency: 120.0}\n"
+                 "random:\n  count: 12\n  seed: 2\n  ranges: {plant.delay: [0, 4], plant.substeps: [1, 3]}\n"
+                 "  set: {plant.friction_coulomb: 200.0}\n")
+    scen = load_scenarios(f)
+    cfgs = [s.config(Config()) for s in scen]
+    assert cfgs[0].plant.delay == 3 and cfgs[0].plant.valve_frequency == 120.0
+    delays = {c.plant.delay for c in cfgs[1:]}
+    assert all(isinstance(c.plant.delay, int) and isinstance(c.plant.substeps, int) for c in cfgs)
+    assert delays <= set(range(5)) and len(delays) > 1 and all(c.plant.friction_coulomb == 200.0 for c in cfgs[1:])
 
 
 # --- graph = library ---------------------------------------------------------------------------------
