@@ -244,7 +244,7 @@ def _readings(y, sp, dt=3e-4):
 
 def test_quantised_readings_lie_on_the_grid_nearest_the_value():
     sp = np.zeros(N_SENSOR)
-    sp[RESOLUTION_Y], sp[RESOLUTION_P], sp[VELOCITY_ALPHA] = 1e-6, 5e3, 1.0
+    sp[RESOLUTION_Y], sp[RESOLUTION_P] = 1e-6, 5e3
     y = np.linspace(-3e-5, 4e-5, 301)
     r = _readings(y, sp)
     k = r[:, 0] / 1e-6
@@ -256,7 +256,7 @@ def test_derived_velocity_is_the_backward_difference_and_its_filter_a_first_orde
     dt = 3e-4
     y = 1e-3 * np.sin(np.arange(500) * dt * 7.0) + 1e-6 * np.random.default_rng(2).standard_normal(500)
     sp = np.zeros(N_SENSOR)
-    sp[VELOCITY_DERIVED], sp[VELOCITY_ALPHA] = 1.0, 1.0
+    sp[VELOCITY_DERIVED] = 1.0                                   # α = 0: unfiltered
     r = _readings(y, sp, dt)
     assert r[0, 1] == 0.0
     np.testing.assert_array_equal(r[1:, 1], (y[1:] - y[:-1]) / dt)
@@ -332,6 +332,7 @@ def test_bad_model_options_are_one_line_naming_the_key(flat, culprit):
 
 def test_the_shipped_files_are_the_reference_and_scenarios_take_the_new_keys():
     assert load_config().plant == Plant() and load_config().noise == Noise()
+    assert not Noise().as_array().any()                          # the reference's sensor array is all zeros
     assert Plant().structure() == 0
     cfg = Scenario("real", (("plant.delay", 2), ("plant.valve_frequency", 100.0),
                             ("noise.velocity_source", "derived"))).config(Config())
