@@ -103,9 +103,10 @@ def sample_step(x1, x2, x3, x4, xv, a1_hat, a2_hat, x3d_prev, has_prev, r0, r1, 
 _X1, _X2, _X3, _X4, _XV, _A1, _A2, _X3D, _J, _MEAN, _M2, _PEAK, _DEAD, _K1, _K2, _K3 = range(16)
 _ROWS = 16
 #: ... then the general path's: the spool's velocity, the previous position and
-#: velocity readings, and the ring of the last DELAY_RING commands.
-_WV, _YPREV, _VPREV = range(_ROWS, _ROWS + 3)
-_RING = _ROWS + 3
+#: velocity readings, this sample's command, the delayed command the plant
+#: gets, and the ring of the last DELAY_RING commands.
+_WV, _YPREV, _VPREV, _U, _UA = range(_ROWS, _ROWS + 5)
+_RING = _ROWS + 5
 _GENERAL_ROWS = _RING + DELAY_RING
 
 
@@ -113,11 +114,13 @@ _GENERAL_ROWS = _RING + DELAY_RING
 def general_sample_step(s, q, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp, sp, ep,
                         dt, y_limit):
     """:func:`sample_step` of a plant of any structure and sensors of any kind,
-    on column q of lane state ``s`` (rows _X1 … _RING + DELAY_RING − 1), at
-    sample i: the controller reads :func:`~has_control.core.noise.sensor_readings`,
-    the command goes into the ring at slot i mod DELAY_RING and the plant
-    (:func:`~has_control.core.actuator.spool_plant_step`) gets the one of
-    sample i − d (0 before sample 0: the ring starts zeroed). Updates ``s``
+    on column q of lane state ``s`` (rows _X1 … _UA), at sample i: the
+    controller reads :func:`~has_control.core.noise.sensor_readings`, the
+    command goes to row _U and the plant
+    (:func:`~has_control.core.actuator.spool_plant_step`) gets it, or with a
+    delay d > 0 row _UA (the command of sample i − d, which :func:`_ring_read`
+    put there; :func:`_ring_write` stores _U after). Only fixed rows are read
+    and written, so a loop over lanes vectorises. Updates ``s``
     in place; returns (diverged, u, e1, e2, e3) as :func:`sample_step` does.
     The same arithmetic per candidate as sample_step's where the options are off."""
     x1, x2, x3, x4 = s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q]
@@ -132,19 +135,35 @@ def general_sample_step(s, q, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, i
         ap, cp, dt)
     e1 = r0 - x1
     s[_J, q] += cost_increment(e1, u, ep)
-    _, mean_w, m2_w, peak_w = metric_update(count - 1.0, s[_MEAN, q], s[_M2, q], s[_PEAK, q], e1)
-    if in_window:
-        s[_MEAN, q] = mean_w
-        s[_M2, q] = m2_w
-        s[_PEAK, q] = peak_w
+    mean, m2, peak = s[_MEAN, q], s[_M2, q], s[_PEAK, q]
+    _, mean_w, m2_w, peak_w = metric_update(count - 1.0, mean, m2, peak, e1)
+    s[_MEAN, q] = mean_w if in_window else mean
+    s[_M2, q] = m2_w if in_window else m2
+    s[_PEAK, q] = peak_w if in_window else peak
     s[_A1, q], s[_A2, q] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
     s[_X3D, q] = x3d
-    s[_RING + i % DELAY_RING, q] = u
-    applied = s[_RING + (i + DELAY_RING - int(pp[DELAY])) % DELAY_RING, q]
+    s[_U, q] = u
+    applied = u if pp[DELAY] == 0.0 else s[_UA, q]
     y, v, p1, p2, sv, wv = spool_plant_step(x1, x2, x3, x4, s[_XV, q], s[_WV, q], applied, pp, dt)
     s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_XV, q], s[_WV, q] = y, v, p1, p2, sv, wv
     bad = diverged(y, v, p1, p2, y_limit) | (not math.isfinite(u))
     return bad, u, e1, e2, e3
+
+
+@njit(**LEAF)
+def _ring_read(s, i, pp):
+    """Row _UA = the ring's command of sample i − d (d = pp[DELAY]; 0 before sample 0), every lane."""
+    slot = _RING + (i + DELAY_RING - int(pp[DELAY])) % DELAY_RING
+    for q in range(s.shape[1]):
+        s[_UA, q] = s[slot, q]
+
+
+@njit(**LEAF)
+def _ring_write(s, i):
+    """The ring's slot i mod DELAY_RING = row _U (the command of sample i), every lane."""
+    slot = _RING + i % DELAY_RING
+    for q in range(s.shape[1]):
+        s[slot, q] = s[_U, q]
 
 
 @njit(**LEAF)
@@ -222,8 +241,10 @@ def _episode_general(k1, k2, k3, ap, pp, cp, rp, sp, seed, x0, trace, record, no
             if in_window:
                 count += 1.0
             x1, x2, x3, x4, a1_hat, a2_hat = s[_X1, 0], s[_X2, 0], s[_X3, 0], s[_X4, 0], s[_A1, 0], s[_A2, 0]
+            _ring_read(s, i, pp)
             bad, u, e1, e2, e3 = general_sample_step(s, 0, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count,
                                                      in_window, ap, pp, cp, sp, ep, dt, y_limit)
+            _ring_write(s, i)
             if record:
                 put_trace_row(trace[i], i * dt, r0, x1, x2, x3, x4, u, e1, e2, e3, a1_hat, a2_hat)
             if bad:
@@ -294,12 +315,15 @@ def _lanes(s, has_prev, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window,
 @njit(**INLINE)
 def _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp, sp, ep, dt, y_limit,
                    mark):
-    """:func:`_lanes` through :func:`general_sample_step`."""
+    """:func:`_lanes` through :func:`general_sample_step`, the delay's ring
+    read before the lane loop and written after it."""
+    _ring_read(s, i, pp)
     for q in range(LANES):
         bad, _, _, _, _ = general_sample_step(s, q, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window,
                                               ap, pp, cp, sp, ep, dt, y_limit)
         dead = s[_DEAD, q]
         s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
+    _ring_write(s, i)
 
 
 @njit(**KERNEL)

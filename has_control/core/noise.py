@@ -88,7 +88,7 @@ def sensor_readings(x1, x2, x3, x4, n1, n2, n3, n4, noisy, sp, y_prev, v_prev, h
     their resolutions, and with a derived velocity the backward difference
     (y_i − y_{i−1})/Δt of the position readings (``y_prev`` the previous one;
     0 at the first sample, filter or not), filtered v_i = v_{i−1} + α(d_i − v_{i−1})
-    (``v_prev``; α = 1: unfiltered, v_i = d_i exactly). Returns the four
+    (``v_prev``; α = 0 stands for unfiltered, v_i = d_i exactly). Returns the four
     readings; the second reading and the position reading are the next
     sample's ``v_prev`` and ``y_prev``."""
     m1 = quantised(x1 + n1 if noisy else x1, sp[RESOLUTION_Y])
@@ -97,5 +97,5 @@ def sensor_readings(x1, x2, x3, x4, n1, n2, n3, n4, noisy, sp, y_prev, v_prev, h
     m4 = quantised(x4 + n4 if noisy else x4, sp[RESOLUTION_P])
     d = (m1 - y_prev) / dt if has_prev else 0.0
     alpha = sp[VELOCITY_ALPHA]
-    v = d if (alpha >= 1.0) | (not has_prev) else v_prev + alpha * (d - v_prev)
+    v = d if (alpha == 0.0) | (not has_prev) else v_prev + alpha * (d - v_prev)
     return m1, v if sp[VELOCITY_DERIVED] != 0.0 else m2, m3, m4

@@ -215,9 +215,10 @@ class Noise:
 
     def as_array(self, step: float = 3.0e-4) -> np.ndarray:
         """The sensor array: the four standard deviations, the two resolutions,
-        1 for a derived velocity (else 0) and its filter's α at sample step ``step`` [s] (1: unfiltered)."""
+        1 for a derived velocity (else 0) and its filter's α at sample step ``step`` [s]
+        (0: unfiltered, as f = 0; so the reference's sensor array is all zeros)."""
         f = self.velocity_filter_frequency
-        alpha = 1.0 - math.exp(-2.0 * math.pi * f * step) if f > 0.0 else 1.0
+        alpha = 1.0 - math.exp(-2.0 * math.pi * f * step) if f > 0.0 else 0.0
         return np.array([self.position, self.velocity, self.pressure_cap, self.pressure_rod,
                          self.position_resolution, self.pressure_resolution,
                          float(VELOCITY_SOURCES[self.velocity_source]), alpha], dtype=np.float64)
