@@ -15,6 +15,13 @@ a seeded random draw of N of them within stated ranges::
       prefix: draw                   # names draw-000, draw-001, ...
       ranges: {plant.mass: [1200.0, 1800.0], noise.seed: [0, 1000000]}
       set: {noise.position: 1.0e-6}  # the same in every draw
+      scale: {plant.mass: [0.95, 1.05]}   # a factor of the base plant's own value, uniform
+
+``scale`` draws relative to the configuration the scenarios are loaded over
+(``tune --config identified.yaml --scenarios ...``: the identified plant, its
+``plant.*`` where set, else the model's ``actuator.*``), so one file serves any
+machine; the drawn values are stored as absolute overrides (a session resumes
+with the same ones).
 
 The robust cost over a scenario set is :mod:`has_control.core.scenarios`'.
 """
@@ -115,7 +122,7 @@ def load_scenarios(path: str | Path, base: Config | None = None) -> tuple[Scenar
         flat = flatten(body or {}, where=f"{path}: scenario {name}")
         out.append(Scenario(str(name), _overrides(flat, path, str(name))))
     if "random" in doc:
-        out.extend(_draws(doc["random"], path))
+        out.extend(_draws(doc["random"], path, base or Config()))
     return check_scenarios(out, base or Config(), str(path))
 
 
@@ -127,15 +134,27 @@ def _overrides(flat: Mapping[str, Any], path: Path | str, name: str) -> tuple[tu
     return tuple((str(k), v) for k, v in flat.items())
 
 
-def _draws(spec: Any, path: Path) -> list[Scenario]:
+def base_value(base: Config, key: str) -> float:
+    """The value of world key ``plant.<name>`` in ``base``: the plant's own, else the model's."""
+    name = key.split(".", 1)[1]
+    v = getattr(base.plant, name, None)
+    if v is None:
+        v = getattr(base.actuator, name, None)
+    if v is None or isinstance(v, (bool, str)):
+        raise KeyError(key)
+    return float(v)
+
+
+def _draws(spec: Any, path: Path, base: Config | None = None) -> list[Scenario]:
     """``random:``'s N scenarios: each key of ``ranges`` uniform in [low, high]
-    (a whole number for a seed), in sorted key order, from one generator."""
+    (a whole number for a seed), then each of ``scale`` a factor uniform in
+    [low, high] of ``base``'s value, in sorted key order, from one generator."""
     where = f"{path}: random"
     if not isinstance(spec, Mapping):
         raise ConfigError(f"{where}: expected a mapping with count, seed and ranges")
-    unknown = sorted(set(spec) - {"count", "seed", "prefix", "ranges", "set"}, key=str)
+    unknown = sorted(set(spec) - {"count", "seed", "prefix", "ranges", "set", "scale"}, key=str)
     if unknown:
-        raise ConfigError(f"{where}.{unknown[0]}: unknown key (count, seed, prefix, ranges, set)")
+        raise ConfigError(f"{where}.{unknown[0]}: unknown key (count, seed, prefix, ranges, set, scale)")
     count, seed = spec.get("count"), spec.get("seed", 0)
     if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_SCENARIOS:
         raise ConfigError(f"{where}.count = {shown(count)}: expected a whole number in 1..{MAX_SCENARIOS}")
@@ -144,10 +163,23 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
     prefix = spec.get("prefix", "random")
     if not isinstance(prefix, str) or not prefix:
         raise ConfigError(f"{where}.prefix = {shown(prefix)}: expected a name (the draws are PREFIX-000, ...)")
-    ranges, fixed = (flatten(spec.get(k) or {}, where=f"{where}.{k}") if isinstance(spec.get(k) or {}, Mapping)
-                     else None for k in ("ranges", "set"))
-    if ranges is None or fixed is None:
-        raise ConfigError(f"{where}: ranges and set are mappings of keys")
+    ranges, fixed, scale = (flatten(spec.get(k) or {}, where=f"{where}.{k}")
+                            if isinstance(spec.get(k) or {}, Mapping) else None for k in ("ranges", "set", "scale"))
+    if ranges is None or fixed is None or scale is None:
+        raise ConfigError(f"{where}: ranges, set and scale are mappings of keys")
+    factors = {}
+    for key in sorted(scale):
+        r = scale[key]
+        ok = isinstance(r, (list, tuple)) and len(r) == 2 and all(
+            not isinstance(finite_number(v), str) and float(v) >= 0.0 for v in r) and r[0] <= r[1]
+        if not ok:
+            raise ConfigError(f"{where}.scale.{key} = {shown(r)}: expected [low, high], two factors >= 0, low <= high")
+        if key in ranges or key in _INTEGER_KEYS or not str(key).startswith("plant."):
+            raise ConfigError(f"{where}.scale.{key}: scales a plant.* number not also in ranges")
+        try:
+            factors[key] = (base_value(base or Config(), key), float(r[0]), float(r[1]))
+        except KeyError:
+            raise ConfigError(f"{where}.scale.{key}: not a plant parameter with a number to scale") from None
     _overrides(fixed, path, f"{prefix}-*")
     _overrides(ranges, path, f"{prefix}-*")
     bounds = {}
@@ -170,6 +202,8 @@ def _draws(spec: Any, path: Path) -> list[Scenario]:
         for key, (lo, hi) in bounds.items():
             drawn[key] = int(rng.integers(lo, hi, endpoint=True)) if key in _INTEGER_KEYS else float(
                 rng.uniform(lo, hi))
+        for key, (value, lo, hi) in factors.items():
+            drawn[key] = value * float(rng.uniform(lo, hi))
         out.append(Scenario(f"{prefix}-{i:0{width}d}", tuple(drawn.items())))
     return out
 
