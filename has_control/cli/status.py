@@ -25,18 +25,25 @@ class StatusLine:
 
 
 class Progress(StatusLine):
-    """A tuning run's progress bar on a terminal."""
+    """A tuning run's progress bar on a terminal: evaluations, best J, the rate
+    and the time left, both measured from the first update (which has no rate yet)."""
 
     def __init__(self, stream=None):
         super().__init__(stream)
-        self.t0 = None
+        self.first = None           # (time, evaluations, progress) at the first update
 
     def __call__(self, swarm) -> None:
         if not self.enabled:
             return
         now = time.perf_counter()
-        self.t0 = self.t0 or now - 1e-9
-        rate = swarm.evaluations / max(now - self.t0, 1e-9)
-        filled = int(30 * swarm.progress())
+        p = swarm.progress()
+        if self.first is None:
+            self.first = (now, swarm.evaluations, p)
+        t0, n0, p0 = self.first
+        elapsed = now - t0
+        rate = f"{(swarm.evaluations - n0) / elapsed:,.0f} eval/s" if elapsed > 0 and swarm.evaluations > n0 else \
+            "- eval/s"
+        eta = f"ETA {elapsed * (1.0 - p) / (p - p0):.0f} s" if p > p0 and elapsed > 0 else "ETA -"
+        filled = int(30 * p)
         self.show(f"{swarm.name} seed {swarm.seed} [{'#' * filled}{'.' * (30 - filled)}] "
-                  f"{swarm.evaluations} evaluations  best J {swarm.gbest_f:.6e}  {rate:,.0f} eval/s")
+                  f"{swarm.evaluations} evaluations  best J {swarm.gbest_f:.6e}  {rate}  {eta}")
