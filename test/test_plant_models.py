@@ -18,7 +18,7 @@ from has_control.config import build_config, load_config, with_horizon
 from has_control.config.scenario_files import Scenario, load_scenarios
 from has_control.core import episode as ep_mod
 from has_control.core.actuator import friction_force, spool_plant_step, valve_plant_step
-from has_control.core.episode import EpisodeArrays, _episode, evaluate, simulate
+from has_control.core.episode import EpisodeArrays, _episode_general, evaluate, simulate
 from has_control.core.noise import sensor_readings
 from has_control.core.params import (
     N_SENSOR, RESOLUTION_P, RESOLUTION_Y, STRUCTURE, STRUCTURE_FULL, STRUCTURE_SPOOL, VELOCITY_ALPHA,
@@ -113,8 +113,8 @@ def test_the_general_path_with_the_options_off_is_the_reference_arithmetic():
         forced = arr.plant.copy()
         forced[STRUCTURE] = STRUCTURE_SPOOL
         trace = np.zeros((cfg.episode.samples, len(ep_mod.TRACE_COLUMNS)))
-        out = _episode(*TUNED, arr.actuator, forced, arr.adaptation, arr.reference, arr.sensor, arr.seed,
-                       arr.episode, arr.x0, trace)
+        out = _episode_general(*TUNED, arr.actuator, forced, arr.adaptation, arr.reference, arr.sensor,
+                               arr.seed, arr.episode, arr.x0, trace)
         np.testing.assert_array_equal(trace, ref.data)
         assert out[0] == ref.score.J
 

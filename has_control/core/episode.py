@@ -6,7 +6,11 @@ adaptation, plant step, divergence test), inlined into both kernels:
 ``_block`` runs up to LANES candidates together, structure of arrays, with a
 branch-free loop over lanes that LLVM vectorises (``evaluate``, blocks spread
 over threads). Both do the same arithmetic per candidate, so they give the
-same bits.
+same bits. A plant or sensors beyond the reference structure (a
+second-order spool, a delay, friction, substeps, quantised or derived
+readings: ``Plant.structure``) run through :func:`general_sample_step` in
+kernels of their own, ``_episode_general`` and ``_block_general``, chosen in
+Python, so the reference kernels are what they were.
 """
 from __future__ import annotations
 
@@ -220,10 +224,13 @@ def _reference_ahead(rp, start, n, dt, ref):
     return ahead
 
 
-@njit(**INLINE)
-def _episode_general(k1, k2, k3, ap, pp, cp, rp, sp, seed, x0, trace, record, noisy, ep, dt, n, lo, hi, y_limit):
+@njit(**KERNEL)
+def _episode_general(k1, k2, k3, ap, pp, cp, rp, sp, seed, ep, x0, trace):
     """:func:`_episode` through :func:`general_sample_step` (one lane), for a
-    plant or sensors beyond the reference structure."""
+    plant or sensors beyond the reference structure (a kernel of its own, so
+    the reference's compiles no more than before)."""
+    ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
+    record = trace.shape[0] > 0
     s = np.zeros((_GENERAL_ROWS, 1))
     s[_X1, 0], s[_X2, 0], s[_X3, 0], s[_X4, 0] = x0[0], x0[1], x0[2], x0[3]
     s[_A1, 0] = cp[A1_INIT]
@@ -260,10 +267,6 @@ def _episode(k1, k2, k3, ap, pp, cp, rp, sp, seed, ep, x0, trace):
     (J, e_max, e_μ, e_σ, samples, diverged)."""
     ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
     record = trace.shape[0] > 0
-    st = _structure(pp, sp)
-    if st != STRUCTURE_REFERENCE:
-        return _episode_general(k1, k2, k3, ap, pp, cp, rp, sp, seed, x0, trace, record, noisy, ep, dt, n, lo, hi,
-                                y_limit)
     x1 = x0[0]
     x2 = x0[1]
     x3 = x0[2]
@@ -326,26 +329,9 @@ def _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window
     _ring_write(s, i)
 
 
-@njit(**KERNEL)
-def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
-    """Episodes of candidates first..last-1 (at most LANES) advanced sample by
-    sample together, structure of arrays: lane q of row r is ``s[r, q]``.
-
-    The lane loop calls :func:`sample_step`, as :func:`_episode` does, so a
-    candidate's score does not depend on which block or lane it ran in. A
-    diverged lane goes on computing (its results are discarded); the block
-    stops when every lane has diverged. The ẋ3d mode is made a constant in
-    each of two copies of the lane loop, so neither computes the other mode's
-    division (4 % faster than one loop computing both).
-    """
-    ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
-    backward = int(cp[X3D_MODE]) == X3D_BACKWARD
-    cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
-    cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
-    st = _structure(pp, sp)
-    pp_spool = _as_structure(pp, STRUCTURE_SPOOL)
-    pp_full = _as_structure(pp, STRUCTURE_FULL)
-    s = np.zeros((_ROWS if st == STRUCTURE_REFERENCE else _GENERAL_ROWS, LANES))
+@njit(**INLINE)
+def _block_start(s, gains, first, last, cp, x0):
+    """Lane q of ``s`` = candidate first + q at x0 (lanes past ``last`` copy its last candidate)."""
     for q in range(LANES):
         p = min(first + q, last - 1)
         s[_X1, q] = x0[0]
@@ -357,42 +343,20 @@ def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
         s[_K1, q] = gains[p, 0]
         s[_K2, q] = gains[p, 1]
         s[_K3, q] = gains[p, 2]
-    count = 0.0
-    ref = np.empty((_AHEAD, 4))
-    alive = LANES
-    for start in range(0, n, _AHEAD):
-        if alive == 0:
-            break
-        ahead = _reference_ahead(rp, start, n, dt, ref)
-        for j in range(ahead):
-            i = start + j
-            n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
-            in_window = lo <= i <= hi
-            if in_window:
-                count += 1.0
-            r0, r1, r2, r3 = ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3]
-            if st == STRUCTURE_REFERENCE:
-                if backward:
-                    _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count,
-                           in_window, ap, pp, cp_backward, ep, dt, y_limit, i + 1.0)
-                else:
-                    _lanes(s, i > 0, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count,
-                           in_window, ap, pp, cp_analytic, ep, dt, y_limit, i + 1.0)
-            elif st == STRUCTURE_SPOOL:
-                if backward:
-                    _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_spool,
-                                   cp_backward, sp, ep, dt, y_limit, i + 1.0)
-                else:
-                    _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_spool,
-                                   cp_analytic, sp, ep, dt, y_limit, i + 1.0)
-            else:
-                _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_full,
-                               cp, sp, ep, dt, y_limit, i + 1.0)
-            alive = 0
-            for q in range(LANES):
-                alive += s[_DEAD, q] == 0.0
-            if alive == 0:
-                break
+
+
+@njit(**LEAF)
+def _alive(s):
+    """Lanes of ``s`` that have not diverged."""
+    alive = 0
+    for q in range(LANES):
+        alive += s[_DEAD, q] == 0.0
+    return alive
+
+
+@njit(**INLINE)
+def _block_finish(s, first, last, count, n, out):
+    """Rows first..last-1 of ``out``: (J, e_max, e_μ, e_σ, samples, diverged) of each lane."""
     for q in range(min(last - first, LANES)):           # the caller never passes more
         p = first + q
         if s[_DEAD, q] > 0.0:
@@ -407,6 +371,96 @@ def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
             out[p, 3] = e_sigma
             out[p, 4] = n
             out[p, 5] = 0.0
+
+
+@njit(**KERNEL)
+def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
+    """Episodes of candidates first..last-1 (at most LANES) advanced sample by
+    sample together, structure of arrays: lane q of row r is ``s[r, q]``;
+    a plant and sensors of the reference structure (others:
+    :func:`_block_general`).
+
+    The lane loop calls :func:`sample_step`, as :func:`_episode` does, so a
+    candidate's score does not depend on which block or lane it ran in. A
+    diverged lane goes on computing (its results are discarded); the block
+    stops when every lane has diverged. The ẋ3d mode is made a constant in
+    each of two copies of the lane loop, so neither computes the other mode's
+    division (4 % faster than one loop computing both).
+    """
+    ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
+    backward = int(cp[X3D_MODE]) == X3D_BACKWARD
+    cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
+    cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
+    s = np.zeros((_ROWS, LANES))
+    _block_start(s, gains, first, last, cp, x0)
+    count = 0.0
+    ref = np.empty((_AHEAD, 4))
+    alive = LANES
+    for start in range(0, n, _AHEAD):
+        if alive == 0:
+            break
+        ahead = _reference_ahead(rp, start, n, dt, ref)
+        for j in range(ahead):
+            i = start + j
+            n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
+            in_window = lo <= i <= hi
+            if in_window:
+                count += 1.0
+            if backward:
+                _lanes(s, i > 0, ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3], n1, n2, n3, n4, noisy, count,
+                       in_window, ap, pp, cp_backward, ep, dt, y_limit, i + 1.0)
+            else:
+                _lanes(s, i > 0, ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3], n1, n2, n3, n4, noisy, count,
+                       in_window, ap, pp, cp_analytic, ep, dt, y_limit, i + 1.0)
+            alive = _alive(s)
+            if alive == 0:
+                break
+    _block_finish(s, first, last, count, n, out)
+
+
+@njit(**KERNEL)
+def _block_general(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
+    """:func:`_block` for a plant or sensors beyond the reference structure,
+    through :func:`general_sample_step`: the structure (spool or full) is
+    made a constant in each copy of the lane loop (and the ẋ3d mode in the
+    spool structure's two), so a copy compiles the options it has not away:
+    a second-order spool with a delay runs as fast as the reference plant."""
+    ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
+    backward = int(cp[X3D_MODE]) == X3D_BACKWARD
+    cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
+    cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
+    full = _structure(pp, sp) == STRUCTURE_FULL
+    pp_spool = _as_structure(pp, STRUCTURE_SPOOL)
+    pp_full = _as_structure(pp, STRUCTURE_FULL)
+    s = np.zeros((_GENERAL_ROWS, LANES))
+    _block_start(s, gains, first, last, cp, x0)
+    count = 0.0
+    ref = np.empty((_AHEAD, 4))
+    alive = LANES
+    for start in range(0, n, _AHEAD):
+        if alive == 0:
+            break
+        ahead = _reference_ahead(rp, start, n, dt, ref)
+        for j in range(ahead):
+            i = start + j
+            n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
+            in_window = lo <= i <= hi
+            if in_window:
+                count += 1.0
+            r0, r1, r2, r3 = ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3]
+            if full:
+                _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_full,
+                               cp, sp, ep, dt, y_limit, i + 1.0)
+            elif backward:
+                _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_spool,
+                               cp_backward, sp, ep, dt, y_limit, i + 1.0)
+            else:
+                _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_spool,
+                               cp_analytic, sp, ep, dt, y_limit, i + 1.0)
+            alive = _alive(s)
+            if alive == 0:
+                break
+    _block_finish(s, first, last, count, n, out)
 
 
 def threads() -> int:
@@ -453,7 +507,8 @@ def _run_blocks(gains, arrays: "list[EpisodeArrays]", outs, workers: int | None 
 
     def run(task):
         s, b = task
-        _block(gains, edges[b], edges[b + 1], *arrays[s].kernel_args(), outs[s])
+        kernel = _block if arrays[s].structure() == STRUCTURE_REFERENCE else _block_general
+        kernel(gains, edges[b], edges[b + 1], *arrays[s].kernel_args(), outs[s])
     if workers == 1 or len(tasks) == 1:
         for task in tasks:
             run(task)
@@ -483,6 +538,10 @@ class EpisodeArrays:
         return cls(cfg.actuator.as_array(), cfg.plant.as_array(cfg.actuator), cfg.adaptation.as_array(),
                    reference_array(cfg.reference, cfg.episode), cfg.noise.as_array(cfg.episode.step),
                    int(cfg.noise.seed), cfg.episode.as_array(), cfg.plant.actuator(cfg.actuator).initial_state())
+
+    def structure(self) -> int:
+        """The structure the kernels run (STRUCTURE_*; :func:`_structure`)."""
+        return int(_structure(self.plant, self.sensor))
 
     def kernel_args(self) -> tuple:
         """(ap, pp, cp, rp, sp, seed, ep, x0): the arguments the kernels take after the gains."""
@@ -514,7 +573,8 @@ def simulate(cfg: Config | None = None, gains: Gains | tuple | None = None,
     arr = EpisodeArrays.from_config(cfg)
     start = arr.x0 if x0 is None else np.asarray(x0, dtype=np.float64)
     trace = np.zeros((cfg.episode.samples, _NCOL))
-    j, a, b, c, n, bad = _episode(g.k1, g.k2, g.k3, *arr.kernel_args()[:-1], start, trace)
+    kernel = _episode if arr.structure() == STRUCTURE_REFERENCE else _episode_general
+    j, a, b, c, n, bad = kernel(g.k1, g.k2, g.k3, *arr.kernel_args()[:-1], start, trace)
     return Trace(trace[:n], Score(j, a, b, c, int(n), bool(bad)), g)
 
 
