@@ -144,10 +144,11 @@ def _named(bag: Bag, topic: str) -> str:
 
 
 def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
-                   true_state: bool = False) -> Recording:
+                   true_state: bool = False, emit: bool = True) -> Recording:
     """The states and commands of ``bag`` on the grid of ``step`` [s] (None:
     Δt fitted to the state stamps); ``true_state``: the plant's true state
-    where the bag has one (scoring). One line per finding on ``bag.on_warning``."""
+    where the bag has one (scoring). One line per finding on ``bag.on_warning``
+    (``emit``; else in ``notes``, for a caller that may refuse the recording first)."""
     layout, st, cm = layout_of(bag, reading, true_state)
     where = f"{bag.path}: {st}"
     messages = bag.messages.get(st, [])
@@ -215,7 +216,7 @@ def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
     if layout == ROS2_CONTROL:
         notes.insert(0, f"{bag.path}: read in the ros2_control layout: states {st} ({' '.join(entries)}), "
                         f"commands {cm or 'none'}" + (f" ({rule})" if rule else ""))
-    for line in notes:
+    for line in notes if emit else ():
         bag.on_warning(line)
     state_ok = have.copy()
     return Recording(str(bag.path), layout, st, cm, rule, step, origin, xs, u, state_ok, got, first,

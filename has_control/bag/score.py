@@ -45,7 +45,7 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
         raise BagError(f"{bag.path}: the bag is incomplete ({bag.damage_summary()}); "
                        "an incomplete run is not scored")
     cfg = bag.config(overrides)
-    rec = read_recording(bag, cfg.episode.step, reading, true_state=True)
+    rec = read_recording(bag, cfg.episode.step, reading, true_state=True, emit=False)
     if rec.command_topic is None or not rec.command.any():
         raise BagError(f"{bag.path}: no messages on a command topic ('…/{COMMAND}' {JOINT_STATE}, or the "
                        f"ros2_control layout's {FLOAT64_ARRAY} commands); topics: {', '.join(sorted(bag.types))}")
@@ -57,6 +57,8 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
             raise BagError(f"{bag.path}: {topic} is not one message per sample from sample 0 ({len(lack)} of {n} "
                            f"samples have no {what}, the first at t = {lack[0] * rec.step:.6f} s): a run with "
                            "dropped samples is not scored (its J would not be the run's); plot shows it")
+    for line in rec.notes:
+        bag.on_warning(line)
     step = cfg.episode.step
     if has_topic(bag, REFERENCE, FLOAT64_ARRAY):
         rf = bag.find(REFERENCE, FLOAT64_ARRAY)
