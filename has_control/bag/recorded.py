@@ -37,8 +37,8 @@ from has_control.bag.base import BagError
 from has_control.bag.read import Bag
 from has_control.wire import cdr
 from has_control.wire.joint_mapping import (
-    DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC, DEFAULT_STATE_INTERFACES, parse_state_interfaces, read_state,
-    resolve,
+    DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC, DEFAULT_STATE_INTERFACES, INTERFACE_KINDS, parse_state_interfaces,
+    read_state, resolve,
 )
 from has_control.wire.topics import COMMAND, COMMAND_NAMES, FLOAT64_ARRAY, JOINT_STATE, STATE, TRUE_STATE
 
@@ -261,7 +261,6 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
 
 
 def _missing(names, mapping, res, k: int, where: str, what: str):
-    from has_control.wire.joint_mapping import INTERFACE_KINDS
     lack = [f"{joint}/{INTERFACE_KINDS[kind]}" for (joint, kind), (j, _) in zip(mapping, res) if j < 0] or \
         [f"{joint}/{INTERFACE_KINDS[kind]}" for joint, kind in mapping]
     raise BagError(f"{where}: message {k}: joints {list(names)} lack {', '.join(lack)} of {what}: "
