@@ -37,8 +37,8 @@ from has_control.bag.base import BagError
 from has_control.bag.read import Bag
 from has_control.wire import cdr
 from has_control.wire.joint_mapping import (
-    DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC, DEFAULT_STATE_INTERFACES, INTERFACE_KINDS, parse_state_interfaces,
-    read_state, resolve,
+    DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC, DEFAULT_STATE_INTERFACES, INTERFACE_KINDS,
+    parse_state_interfaces, read_state, resolve,
 )
 from has_control.wire.topics import COMMAND, COMMAND_NAMES, FLOAT64_ARRAY, JOINT_STATE, STATE, TRUE_STATE
 
