@@ -2,9 +2,10 @@
 how its recorded samples read (layout, grid, drops, repeats)."""
 from __future__ import annotations
 
-from has_control.bag import PARAMETERS_KEY, BagError, describe, read_bag
+from has_control.bag import PARAMETERS_KEY, describe, read_bag
 from has_control.bag.recorded import read_recording
 from has_control.cli.score import add_reading, reading_of
+from has_control.common.errors import HasControlError
 
 HELP = "topics, types, counts and duration of a bag"
 
@@ -22,7 +23,7 @@ def run(args) -> int:
     try:
         step = bag.config().episode.step if PARAMETERS_KEY in bag.custom_data else None
         rec = read_recording(bag, step, reading_of(args))
-    except BagError as exc:
+    except HasControlError as exc:
         print(f"Samples:           not readable as a run ({str(exc).removeprefix(str(bag.path) + ': ')})")
         return 0
     print(f"Layout:            {rec.layout} (states {rec.state_topic}, commands {rec.command_topic or 'none'}"
