@@ -277,3 +277,21 @@ def test_non_finite_states_are_counted_and_left_out_of_identification(clean, tmp
     exp = experiment_from_bag(path, on_warning=notes.append)
     assert any("1 state with non-finite values" in n for n in notes)
     assert list(exp.gaps) == [900 - exp.first] and np.isfinite(exp.x).all()
+
+
+def test_ros2_control_commands_pair_by_log_time_the_first_after_each_state_wins(clean, tmp_path):
+    d, cfg, tr, x, types, msgs, custom = clean
+    u = tr["u"]
+    first = cdr.encode_float64_arrays(u[:, None])
+    later = cdr.encode_float64_arrays(u[:, None] + 1.0)                  # a second, different command per state
+    states = [(lt + 1000, b) for lt, b in msgs["/state"]]
+    cmds = [(0, cdr.encode_float64_arrays([[7.0]])[0])]                # before the first state
+    for (lt, _), a, b in zip(states, first, later):
+        cmds += [(lt + 10_000, a), (lt + 20_000, b)]
+    path = _write(tmp_path / "twice", {"/joint_states": types["/state"], CMD: "std_msgs/msg/Float64MultiArray"},
+                  {"/joint_states": states, CMD: cmds}, custom)
+    notes = []
+    rec = read_recording(read_bag(path, on_warning=notes.append), cfg.episode.step)
+    np.testing.assert_array_equal(rec.u, u)
+    assert any(f"{len(u)} commands not first after their state and 1 logged before the first state: ignored" in n
+               for n in notes), notes

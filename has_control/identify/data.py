@@ -89,7 +89,7 @@ def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
         raise IdentificationError(f"{path}: no messages on a command topic ('…/{COMMAND}' {JOINT_STATE}, or "
                                   f"{DEFAULT_COMMAND_TOPIC} {FLOAT64_ARRAY}); topics: {', '.join(sorted(bag.types))}")
     try:
-        rec = read_recording(bag, cfg.episode.step, reading)
+        rec = read_recording(bag, cfg.episode.step, reading, emit=False)
     except BagError as exc:
         if "another model" in str(exc):
             raise IdentificationError(str(exc)) from None
@@ -112,6 +112,8 @@ def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
     gaps = np.flatnonzero(~ok)
     keep = np.maximum.accumulate(np.where(ok, np.arange(len(ok)), 0))     # a gap holds the last usable sample
     xx, uu = rec.x[first:last][keep], rec.u[first:last][keep]
+    for line in rec.notes:                    # once the recording is accepted: a refusal stays one line
+        on_warning(line)
     if len(gaps):
         on_warning(f"{path}: {len(gaps)} of {len(ok)} samples from t = {first * cfg.episode.step:.6f} s without "
                    "a finite state and its command (dropped, non-finite or unanswered): identify leaves out "
