@@ -1,4 +1,5 @@
-"""rosbag2 bags in MCAP, one module per job: ``write``, ``read`` (and describe), ``score``.
+"""rosbag2 bags in MCAP, one module per job: ``write``, ``read`` (and describe), ``recorded``
+(a run's states and commands on the sample grid, either layout, as a machine records them), ``score``.
 
 Outer layer: rosbags and the MCAP format, no rclpy. A bag is what
 ``ros2 bag record -s mcap`` writes: a directory with ``metadata.yaml``

@@ -61,7 +61,9 @@ class Bag:
         overrides = list(overrides)
         flat = self.parameters()
         if flat is None:
-            self.on_warning(f"{self.path}: no {PARAMETERS_KEY} in the bag; scoring with the shipped configuration")
+            self.on_warning(f"{self.path}: no {PARAMETERS_KEY} in the bag (the run's own parameters): read with "
+                            "the configuration files config/*.yaml" + (" and --config" if overrides else "")
+                            + ", not necessarily those the run had")
             return load_config(overrides)
         cfg = build_config(flat, source=f"{self.path} ({PARAMETERS_KEY})")
         if overrides:

@@ -8,9 +8,12 @@ from typing import Callable, Iterable
 import numpy as np
 
 from has_control.wire import cdr
-from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, STATE, TRUE_STATE
-from has_control.bag.base import BagError, warn
+from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE
+from has_control.bag.base import PARAMETERS_KEY, BagError, warn
 from has_control.bag.read import Bag, read_bag
+from has_control.bag.recorded import Reading, has_topic, on_grid, read_recording
+from has_control.core.episode import EpisodeArrays
+from has_control.core.reference import reference
 from has_control.bag.samples import RunSamples
 from has_control.core.cost import score_arrays
 
@@ -27,57 +30,74 @@ class RecordedRun(RunSamples):
         return len(self.u)
 
 
-def _by_sample(stamps_ns: np.ndarray, step_ns: int, what: str, path) -> np.ndarray:
-    idx = np.rint(stamps_ns / step_ns).astype(np.int64)
-    grid = np.arange(len(idx))
-    if len(idx) and not np.array_equal(idx, grid) and np.array_equal(np.sort(idx), grid):
-        first = int(np.argmax(idx != np.arange(len(idx))))
-        raise BagError(f"{path}: {what}: message {first} carries sample {idx[first]}: the samples are "
-                       "reordered (log times and header stamps disagree)")
-    if len(idx) and not np.array_equal(idx, np.arange(len(idx))):
-        dup = len(idx) - len(np.unique(idx))
-        raise BagError(f"{path}: {what} is not one message per sample from sample 0 "
-                       f"({len(idx)} messages, {dup} repeated); was it a lock-step run?")
-    return idx
-
-
-def recorded_run(bag: Bag, overrides: Iterable[str | Path] = ()) -> RecordedRun:
+def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Reading = Reading()) -> RecordedRun:
     """The samples of a lock-step run in ``bag``: states, commands and reference.
     The states are the plant's true ones: ``true_state`` where the plant
     published its sensors' readings on ``state`` (``noise.added_by: plant``).
-    An incomplete bag (truncated or damaged) is refused: its J would not be the run's."""
+    States and commands are read by :func:`~has_control.bag.recorded.read_recording`
+    (either layout, any epoch, jitter within its tolerance, repeats collapsed).
+    The reference is ``…/controller/reference``, else recomputed from the
+    configuration (said in one line). Refused, one line: an incomplete bag
+    (truncated or damaged), a sample without its state or command (dropped:
+    the J of what is left would not be the run's), fewer samples than the
+    configuration's horizon unless the run diverged."""
     if not bag.complete:
         raise BagError(f"{bag.path}: the bag is incomplete ({bag.damage_summary()}); "
                        "an incomplete run is not scored")
     cfg = bag.config(overrides)
-    step_ns = cfg.episode.step_ns
-    measured = any(t == "/" + TRUE_STATE or t.endswith("/" + TRUE_STATE) for t in bag.types)
-    st = bag.find(TRUE_STATE if measured else STATE, JOINT_STATE)
-    cm, rf = bag.find(COMMAND, JOINT_STATE), bag.find(REFERENCE, FLOAT64_ARRAY)
-    states, commands, refs = bag.messages[st], bag.messages[cm], bag.messages[rf]
-    if not states or not commands or not refs:
-        empty = [t for t, m in ((st, states), (cm, commands), (rf, refs)) if not m]
-        raise BagError(f"{bag.path}: no messages on {', '.join(empty)}")
-    _, pos, vel, eff = cdr.joint_states([d for _, d in states], f"{bag.path}: {st}")
-    _by_sample(cdr.stamps_ns([d for _, d in states]), step_ns, st, bag.path)
-    _by_sample(cdr.stamps_ns([d for _, d in commands]), step_ns, cm, bag.path)
-    _, u, _, _ = cdr.joint_states([d for _, d in commands], f"{bag.path}: {cm}")
-    ref = cdr.float64_arrays([d for _, d in refs], f"{bag.path}: {rf}")
-    _by_sample(np.rint(ref[:, 0] * 1e9).astype(np.int64), step_ns, rf, bag.path)
-    m = min(len(u), len(ref), len(pos), cfg.episode.samples)
-    y = pos[:, 0]
+    rec = read_recording(bag, cfg.episode.step, reading, true_state=True, emit=False)
+    if rec.command_topic is None or not rec.command.any():
+        raise BagError(f"{bag.path}: no messages on a command topic ('…/{COMMAND}' {JOINT_STATE}, or the "
+                       f"ros2_control layout's {FLOAT64_ARRAY} commands); topics: {', '.join(sorted(bag.types))}")
+    n = min(rec.samples, cfg.episode.samples, _through(rec.command))
+    for what, have in (("state", rec.state), ("command", rec.command)):
+        lack = np.flatnonzero(~have[:n])
+        if len(lack):
+            topic = rec.state_topic if what == "state" else rec.command_topic
+            raise BagError(f"{bag.path}: {topic} is not one message per sample from sample 0 ({len(lack)} of {n} "
+                           f"samples have no {what}, the first at t = {lack[0] * rec.step:.6f} s): a run with "
+                           "dropped samples is not scored (its J would not be the run's); plot shows it")
+    for line in rec.notes:
+        bag.on_warning(line)
+    step = cfg.episode.step
+    if has_topic(bag, REFERENCE, FLOAT64_ARRAY):
+        rf = bag.find(REFERENCE, FLOAT64_ARRAY)
+        if not bag.messages[rf]:
+            raise BagError(f"{bag.path}: no messages on {rf}")
+        ref = cdr.float64_arrays([d for _, d in bag.messages[rf]], f"{bag.path}: {rf}")
+        rows, _ = on_grid(rec.time_ns(np.rint(ref[:, 0] * 1e9)), 0, step * 1e9, f"{bag.path}: {rf}")
+        x1d = np.full(rec.samples, np.nan)
+        keep = rows < rec.samples
+        x1d[rows[keep]] = ref[keep, 1]
+        n = min(n, _through(~np.isnan(x1d)))
+        lack = np.flatnonzero(np.isnan(x1d[:n]))
+        if len(lack):
+            raise BagError(f"{bag.path}: {rf} is not one message per sample from sample 0 ({len(lack)} of {n} "
+                           f"samples have none, the first at t = {lack[0] * step:.6f} s)")
+    else:
+        rp = EpisodeArrays.from_config(cfg).reference
+        x1d = np.array([reference(rp, i * step)[0] for i in range(n)])
+        src = f"{PARAMETERS_KEY} of the bag" if PARAMETERS_KEY in bag.custom_data else "the configuration files"
+        bag.on_warning(f"{bag.path}: no '…/{REFERENCE}' in the bag: the reference and the metrics recomputed "
+                       f"from {src}" + (" and --config" if list(overrides) else ""))
+    y = rec.x[:n, 0]
     bad = ~np.isfinite(y) | (np.abs(y) > cfg.episode.y_limit)
     diverged = bool(bad.any())
-    if not diverged and m < cfg.episode.samples:
-        raise BagError(f"{bag.path}: {m} of {cfg.episode.samples} samples recorded: the run is incomplete")
-    return RecordedRun(ref[:m, 0], y[:m], vel[:m, 0], eff[:m, 1], eff[:m, 2], u[:m, 0],
-                       ref[:m, 1], diverged, cfg)
+    if not diverged and n < cfg.episode.samples:
+        raise BagError(f"{bag.path}: {n} of {cfg.episode.samples} samples recorded: the run is incomplete")
+    return RecordedRun(np.arange(n) * step, y, rec.x[:n, 1], rec.x[:n, 2], rec.x[:n, 3], rec.u[:n],
+                       x1d[:n], diverged, cfg)
+
+
+def _through(have: np.ndarray) -> int:
+    """Samples up to the last one ``have`` holds (a run that ends early, e.g. diverged, stops there)."""
+    return int(np.flatnonzero(have)[-1]) + 1 if have.any() else 0
 
 
 def score_bag(path: str | Path, overrides: Iterable[str | Path] = (),
-              on_warning: Callable[[str], None] = warn):
+              on_warning: Callable[[str], None] = warn, reading: Reading = Reading()):
     """J, e_max, e_μ, e_σ of a recorded lock-step run (SPEC §6), as the core
     scores it; warnings (truncation, missing parameters) go to ``on_warning``."""
     bag = read_bag(path, topics=None, on_warning=on_warning)
-    run = recorded_run(bag, overrides)
+    run = recorded_run(bag, overrides, reading)
     return score_arrays(run["e1"], run.u, run.cfg.episode.as_array(), diverged=run.diverged), run

@@ -2,17 +2,20 @@
 
 :func:`~has_control.bag.score.recorded_run` refuses a run that is not one
 state and one command per sample (its J would not be the run's);
-a figure shows whatever was recorded. :func:`run_series` puts each
-message on sample i = round(stamp / Δt) and leaves NaN where a topic has no
-message for a sample: a realtime run whose controller did not answer every
+a figure shows whatever was recorded. State and command are read by
+:func:`has_control.bag.recorded.read_recording` (either layout, stamps of any
+epoch, jitter within its tolerance, repeats collapsed, drops counted); each
+message goes to its nearest sample and NaN is left where a topic has no
+message for a sample (a gap in the figure): a realtime run whose controller did not answer every
 state, a recording cut short, a bag from another recorder. Only the state
 topic is required. The signals, all SI:
 
-* state (``…/state``, JointState by joint name): y [m], ẏ [m/s], P1, P2 [Pa];
-* command (``…/command``): u [m], the valve command the controller sent;
+* state (``…/state``, or ``/joint_states`` through ``state_interfaces``): y [m], ẏ [m/s], P1, P2 [Pa];
+* command (``…/command``, or the ros2_control layout's Float64MultiArray): u [m], the valve command sent;
 * reference (``…/controller/reference``; else the x1d of controller_state): x1d [m]; where
   the controller published none and the bag holds the run's parameters, the
-  reference they define (so e1 is whole wherever the state is);
+  reference they define (so e1 is whole wherever the state is); a bag of
+  only state and command: the reference the configuration defines, said in one line;
 * controller_state: â1 [N·s/m], â2 [m³/(s·Pa)];
 * gains (``…/controller/gains``): (t [s], k1, k2, k3 [1/s]) each time they changed;
 * missed samples (``…/plant/missed``, a realtime stack's bag): the samples the
@@ -22,7 +25,7 @@ topic is required. The signals, all SI:
   command came late cannot be told.
 
 A bag without the run's parameters (``rosbags-convert`` drops ``custom_data``)
-is read with the shipped configuration, Δt taken from the state stamps and
+is read with the configuration files, Δt taken from the state stamps and
 the horizon from the recording, with a warning.
 """
 from __future__ import annotations
@@ -36,6 +39,7 @@ import numpy as np
 
 from has_control.bag.base import PARAMETERS_KEY, BagError, warn
 from has_control.bag.read import Bag, read_bag
+from has_control.bag.recorded import Reading, Recording, read_recording
 from has_control.bag.samples import RunSamples
 from has_control.common.errors import HasControlError
 from has_control.config import build_config
@@ -43,8 +47,8 @@ from has_control.core.params import Config
 from has_control.core.reference import reference, reference_array
 from has_control.wire import cdr
 from has_control.wire.topics import (
-    COMMAND, COMMAND_NAMES, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, FLOAT64_ARRAY, GAINS, GAINS_COLUMNS,
-    JOINT_STATE, MISSED, MISSED_COLUMNS, REFERENCE, REFERENCE_COLUMNS, STATE, STATE_NAMES,
+    COMMAND, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, FLOAT64_ARRAY, GAINS, GAINS_COLUMNS,
+    MISSED, MISSED_COLUMNS, REFERENCE, REFERENCE_COLUMNS,
 )
 
 
@@ -70,43 +74,26 @@ class RunSeries(RunSamples):
 
 
 def run_series(path: str | Path, overrides: Iterable[str | Path] = (),
-               on_warning: Callable[[str], None] = warn) -> RunSeries:
+               on_warning: Callable[[str], None] = warn, reading: Reading = Reading()) -> RunSeries:
     """The run recorded in the bag at ``path`` (see the module docstring)."""
     bag = read_bag(path, topics=None, on_warning=on_warning)
-    return series_of(bag, overrides)
+    return series_of(bag, overrides, reading)
 
 
-def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
+def series_of(bag: Bag, overrides: Iterable[str | Path] = (), reading: Reading = Reading()) -> RunSeries:
     """The run recorded in ``bag`` (already read)."""
-    st = bag.find(STATE, JOINT_STATE)
-    states = bag.messages[st]
-    if not states:
-        raise BagError(f"{bag.path}: no messages on {st}")
-    stamps = cdr.stamps_ns([d for _, d in states])
-    names, pos, vel, eff = cdr.joint_states([d for _, d in states], f"{bag.path}: {st}")
-    cfg, grid = _config(bag, stamps, overrides)
-    step = grid.step
-    idx = grid.samples(stamps, f"{bag.path}: {st}")
-    n = int(idx.max()) + 1
-    col = _joint_columns(names, STATE_NAMES, f"{bag.path}: {st}")
-    out = {k: _on_grid(n, idx, v) for k, v in (
-        ("y", pos[:, col[0]]), ("ydot", vel[:, col[0]]), ("p1", eff[:, col[1]]), ("p2", eff[:, col[2]]))}
-    have = np.zeros(n, bool)
-    have[idx] = True
+    cfg = bag.config(overrides)
+    params = PARAMETERS_KEY in bag.custom_data
+    rec = read_recording(bag, cfg.episode.step if params else None, reading)
+    if not params:
+        cfg = _fitted_config(bag, cfg, rec)
+    step = rec.step
+    grid = _Grid(rec, 1e-3 if params else 0.25)
+    n = rec.samples
+    have = rec.state
     missing: dict[str, np.ndarray] = {}
-
-    def gaps(relative: str, rows: np.ndarray) -> None:
-        got = np.zeros(n, bool)
-        got[rows[rows < n]] = True
-        missing[relative] = np.flatnonzero(have & ~got)
-
-    u = np.full(n, math.nan)
-    cm = _optional(bag, COMMAND, JOINT_STATE)
-    if cm:
-        cnames, cpos, _, _ = cdr.joint_states([d for _, d in bag.messages[cm]], f"{bag.path}: {cm}")
-        rows = grid.samples(cdr.stamps_ns([d for _, d in bag.messages[cm]]), f"{bag.path}: {cm}")
-        u = _on_grid(n, rows, cpos[:, _joint_columns(cnames, COMMAND_NAMES, f"{bag.path}: {cm}")[0]])
-        gaps(COMMAND, rows)
+    if rec.command_topic is not None:
+        missing[COMMAND] = np.flatnonzero(have & ~rec.command)
     x1d = a1 = a2 = np.full(n, math.nan)
     cs = _optional(bag, CONTROLLER_STATE, FLOAT64_ARRAY)
     if cs:
@@ -117,21 +104,24 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = ()) -> RunSeries:
     if rf:
         rows, data = _arrays(bag, rf, REFERENCE_COLUMNS, grid)
         x1d = _on_grid(n, rows, data[:, REFERENCE_COLUMNS.index("x1d")])
-        gaps(REFERENCE, rows)
+        got = np.zeros(n, bool)
+        got[rows[rows < n]] = True
+        missing[REFERENCE] = np.flatnonzero(have & ~got)
     elif not cs:
-        raise BagError(f"{bag.path}: no '…/{REFERENCE}' nor '…/{CONTROLLER_STATE}' ({FLOAT64_ARRAY}): "
-                       "no reference to plot the error against")
-    if PARAMETERS_KEY in bag.custom_data:
+        src = f"{PARAMETERS_KEY} of the bag" if params else "the configuration files"
+        bag.on_warning(f"{bag.path}: no '…/{REFERENCE}' nor '…/{CONTROLLER_STATE}' in the bag: the reference "
+                       f"recomputed from {src}" + (" and --config" if list(overrides) else ""))
+    if params or not (rf or cs):
         x1d = _fill_reference(x1d, cfg, step)
     gt, gk = _gains(bag, cfg, grid)
     missed, failsafe = _missed(bag, grid)
-    return RunSeries(np.arange(n) * step, out["y"], out["ydot"], out["p1"], out["p2"], u, x1d,
+    x = rec.x
+    return RunSeries(np.arange(n) * step, x[:, 0], x[:, 1], x[:, 2], x[:, 3], rec.u, x1d,
                      name=Path(bag.path).name or str(bag.path), cfg=cfg, a1_hat=a1, a2_hat=a2, gains_t=gt,
-                     gains=gk, missing=missing, parameters=PARAMETERS_KEY in bag.custom_data, missed=missed,
-                     failsafe=failsafe)
+                     gains=gk, missing=missing, parameters=params, missed=missed, failsafe=failsafe)
 
 
-def _missed(bag: Bag, grid: _Grid) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _missed(bag: Bag, grid: "_Grid") -> tuple[np.ndarray | None, np.ndarray | None]:
     """(missed samples, fail-safe samples) from ``…/plant/missed`` if the bag
     has that topic (a realtime stack's bag: no messages, no misses), else (None, None)."""
     hits = [t for t, ty in bag.types.items() if (t == "/" + MISSED or t.endswith("/" + MISSED))
@@ -145,60 +135,40 @@ def _missed(bag: Bag, grid: _Grid) -> tuple[np.ndarray | None, np.ndarray | None
     return rows, rows[data[:, MISSED_COLUMNS.index("failsafe")] > 0.5]
 
 
-@dataclass(frozen=True)
 class _Grid:
-    """The sample grid: sample i is stamped origin + i·Δt [ns]; a stamp may be
-    off it by ``tolerance`` of a period (0.001: our bags; 0.25: another recorder's)."""
+    """The recording's sample grid for the controller's arrays, whose rows lead
+    with t [s]: sample i = round(t / Δt) (relative to the first state where
+    the stamps are wall-clock time); off it by more than ``tolerance`` of a
+    period (0.001: our bags; 0.25: a bag without our parameters) is refused."""
 
-    origin_ns: int
-    step: float
-    tolerance: float
+    def __init__(self, rec: Recording, tolerance: float):
+        self.rec, self.step, self.tolerance = rec, rec.step, tolerance
 
     def samples(self, stamps_ns: np.ndarray, what: str) -> np.ndarray:
-        """Sample index of each stamp; refused if off the grid or before the first sample."""
-        x = (np.asarray(stamps_ns).astype(np.int64) - self.origin_ns) / (self.step * 1e9)
+        """Sample index of each time [ns]; refused if off the grid or before the first sample."""
+        rel = self.rec.time_ns(stamps_ns)
+        x = rel / (self.step * 1e9)
         idx = np.rint(x).astype(np.int64)
         off = np.abs(x - idx) > self.tolerance
         if off.any() or (idx < 0).any():
             k = int(np.argmax(off | (idx < 0)))
             raise BagError(f"{what}: message {k} is stamped {stamps_ns[k] / 1e9:.9f} s, "
-                           f"not on the sample grid of {self.step * 1e3:g} ms from {self.origin_ns / 1e9:.9f} s")
+                           f"not on the sample grid of {self.step * 1e3:g} ms of the recording")
         if len(idx) and idx.max() > 100 * len(idx) + 1_000_000:
             raise BagError(f"{what}: stamps up to sample {idx.max()} for {len(idx)} messages: not one run")
         return idx
 
 
-def _config(bag: Bag, stamps: np.ndarray, overrides) -> tuple[Config, _Grid]:
-    """The run's Config and sample grid. Without stored parameters: the
-    shipped configuration with Δt from the stamps, the horizon of the
-    recording, and the grid starting at the first state (a real machine
-    stamps wall time)."""
-    cfg = bag.config(overrides)
-    if PARAMETERS_KEY in bag.custom_data:
-        return cfg, _Grid(0, cfg.episode.step, 1e-3)
-    origin, step = _fit_grid(stamps, cfg.episode.step)
-    horizon = (int(round((int(stamps.max()) - origin) / 1e9 / step)) + 1) * step
+def _fitted_config(bag: Bag, cfg: Config, rec: Recording) -> Config:
+    """Without stored parameters: the configuration with Δt from the stamps and
+    the horizon of the recording."""
+    step = rec.step
+    horizon = rec.samples * step
     try:
-        cfg = build_config({"simulation.step": step, "simulation.horizon": horizon},
-                           source=f"{bag.path} (Δt and horizon from the recording)", base=cfg)
+        return build_config({"simulation.step": step, "simulation.horizon": horizon},
+                            source=f"{bag.path} (Δt and horizon from the recording)", base=cfg)
     except HasControlError:                     # too short for the metric window: keep Δt only
-        cfg = build_config({"simulation.step": step}, source=f"{bag.path} (Δt from the recording)", base=cfg)
-    return cfg, _Grid(origin, step, 0.25)
-
-
-def _fit_grid(stamps: np.ndarray, default_step: float) -> tuple[int, float]:
-    """(origin [ns], Δt [s]) of jittered stamps: each step between stamps is a
-    whole number of periods of the median step (a gap: several), and the grid
-    is the least-squares line through (sample, stamp), so it does not drift."""
-    u = np.unique(np.asarray(stamps, dtype=np.int64))
-    if len(u) < 2:
-        return int(u[0]), default_step
-    rel = (u - u[0]).astype(np.float64)
-    d = np.diff(rel)
-    k = np.maximum(1.0, np.rint(d / np.median(d)))
-    idx = np.concatenate([[0.0], np.cumsum(k)])
-    slope, intercept = np.polyfit(idx, rel, 1)
-    return int(u[0] + round(intercept)), float(slope) / 1e9
+        return build_config({"simulation.step": step}, source=f"{bag.path} (Δt from the recording)", base=cfg)
 
 
 def _fill_reference(x1d: np.ndarray, cfg: Config, step: float) -> np.ndarray:
@@ -249,15 +219,7 @@ def _gains(bag: Bag, cfg: Config, grid: _Grid) -> tuple[np.ndarray, np.ndarray]:
         if data.shape[1] != len(GAINS_COLUMNS):
             raise BagError(f"{bag.path}: {g}: {data.shape[1]} columns, expected {len(GAINS_COLUMNS)}")
         order = np.argsort(data[:, 0], kind="stable")
-        return np.maximum(data[order, 0] - grid.origin_ns / 1e9, 0.0), data[order, 1:4]
+        return np.maximum(grid.rec.time_ns(np.rint(data[order, 0] * 1e9)) / 1e9, 0.0), data[order, 1:4]
     if PARAMETERS_KEY in bag.custom_data:
         return np.zeros(1), np.array([cfg.gains.as_tuple()])
     return np.zeros(0), np.zeros((0, 3))
-
-
-def _joint_columns(names: list[str], wanted: list[str], what: str) -> list[int]:
-    """Column of each wanted joint, by name (a bag from elsewhere may order them otherwise)."""
-    missing = [w for w in wanted if w not in names]
-    if missing:
-        raise BagError(f"{what}: no joint {', '.join(missing)} (joints: {', '.join(names) or 'none'})")
-    return [names.index(w) for w in wanted]

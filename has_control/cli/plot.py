@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 
 from has_control.cli.args import figure_path, number
+from has_control.cli.score import add_reading, reading_of
 from has_control.common.errors import HasControlError
 from has_control.common.files import check_output
 
@@ -27,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--title", metavar="TEXT", help="the figure's title")
     p.add_argument("--config", action="append", metavar="FILE",
                    help="ros__parameters YAML overriding the parameters stored in the bags")
+    add_reading(p)
 
 
 def default_out(bag: str) -> Path:
@@ -49,7 +51,7 @@ def run(args) -> int:
         check_output(out, "file")
     except HasControlError as exc:
         raise HasControlError(f"--out: {exc}") from None
-    series = [run_series(b, args.config or []) for b in args.bags]
+    series = [run_series(b, args.config or [], reading=reading_of(args)) for b in args.bags]
     names = _names(args.bags, series, gains_text)
     views = [view_of_series(s, labels[i] if i < len(labels) else names[i]) for i, s in enumerate(series)]
     if args.window:

@@ -13,21 +13,22 @@ publishes measured states records.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 from numba import njit
 
-from has_control.bag.base import warn
+from has_control.bag.base import BagError, warn
 from has_control.bag.read import read_bag
+from has_control.bag.recorded import Reading, layout_of, read_recording
 from has_control.common.errors import HasControlError
 from has_control.core.jit import KERNEL
 from has_control.core.noise import measurement_noise
 from has_control.core.params import Config, Noise
-from has_control.wire import cdr
-from has_control.wire.topics import COMMAND, COMMAND_NAMES, JOINT_STATE, STATE, STATE_NAMES
+from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC
+from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE
 
 #: Fewest samples an experiment may have (0.3 s at the reference step): below
 #: this there are too few segments to estimate anything.
@@ -42,13 +43,16 @@ class IdentificationError(HasControlError):
 class Experiment:
     """One recorded run: measured states x (n, 4) = (y, ẏ, P1, P2) [m, m/s,
     Pa, Pa], commands u (n,) [m], on a grid of ``cfg.episode.step`` [s]
-    from sample ``first`` (the plant starts its valve centred at sample 0)."""
+    from sample ``first`` (the plant starts its valve centred at sample 0);
+    ``gaps``: rows recorded without a usable state and command (holding the
+    row before), which no segment may span."""
 
     name: str
     x: np.ndarray
     u: np.ndarray
     cfg: Config
     first: int = 0
+    gaps: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # samples without a measurement
 
     @property
     def samples(self) -> int:
@@ -64,67 +68,58 @@ class Experiment:
 
 
 def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
-                        on_warning: Callable[[str], None] = warn) -> Experiment:
+                        on_warning: Callable[[str], None] = warn, reading: Reading = Reading()) -> Experiment:
     """The experiment recorded in the bag at ``path`` (directory or .mcap).
 
-    States and commands are paired by their header stamps (the command is
-    stamped with the state it answers); the bag's parameters (custom data)
-    give the configuration, else the shipped files, each overridden by
-    ``overrides``. Raises :class:`IdentificationError` or BagError naming
-    the bag and what is missing.
+    States and commands come from :func:`has_control.bag.recorded.read_recording`
+    (either layout; stamps from any epoch, jitter within its tolerance,
+    repeats collapsed), on the grid of ``simulation.step``; the bag's
+    parameters (custom data) give the configuration, else the shipped files,
+    each overridden by ``overrides``. The experiment runs from the first to
+    the last sample with a finite state and its command, stopping where
+    |y| exceeds ``simulation.y_limit`` (diverged); the samples between without
+    one (dropped, non-finite, unanswered) are its ``gaps``, said in one line:
+    no segment that spans one is fitted. Raises :class:`IdentificationError`
+    or BagError naming the bag and what is missing.
     """
     bag = read_bag(path, topics=None, on_warning=on_warning)
-    st, cm = bag.find(STATE, JOINT_STATE), bag.find(COMMAND, JOINT_STATE)
-    states, commands = bag.messages.get(st, []), bag.messages.get(cm, [])
-    if not states or not commands:
-        empty = [t for t, m in ((st, states), (cm, commands)) if not m]
-        raise IdentificationError(f"{path}: no messages on {', '.join(empty)}")
     cfg = bag.config(overrides)
-    step_ns = cfg.episode.step_ns
-    names, pos, vel, eff = _joint_states(states, f"{path}: {st}")
-    if names != STATE_NAMES or pos.shape[1] != 3 or vel.shape[1] != 3 or eff.shape[1] != 3:
-        raise IdentificationError(f"{path}: {st}: joints {names} are not this actuator's {STATE_NAMES} "
-                                  "(position, velocity, effort of 3 each): a bag of another model")
-    cnames, cpos, _, _ = _joint_states(commands, f"{path}: {cm}")
-    if cnames != COMMAND_NAMES or cpos.shape[1] != 1:
-        raise IdentificationError(f"{path}: {cm}: joints {cnames} are not the valve command {COMMAND_NAMES}: "
-                                  "a bag of another model")
-    xs = _by_sample(cdr.stamps_ns([d for _, d in states]), step_ns, st, path)
-    us = _by_sample(cdr.stamps_ns([d for _, d in commands]), step_ns, cm, path)
-    x = np.column_stack([pos[:, 0], vel[:, 0], eff[:, 1], eff[:, 2]])
-    common = sorted(set(xs) & set(us))
-    if not common:
-        raise IdentificationError(f"{path}: no command answers a recorded state (their stamps never match)")
-    first = common[0]
-    end = next((k for k, i in enumerate(common) if i != first + k), len(common))
-    rows = np.array([xs[i] for i in common[:end]])
-    cols = np.array([us[i] for i in common[:end]])
-    xx, uu = x[rows], cpos[cols, 0]
-    good = np.isfinite(xx).all(axis=1) & np.isfinite(uu) & (np.abs(xx[:, 0]) <= cfg.episode.y_limit)
-    stop = int(np.argmin(good)) if not good.all() else len(good)
-    if stop < MIN_SAMPLES:
-        raise IdentificationError(f"{path}: {stop} usable samples of state and command in a row; "
-                                  f"identification needs at least {MIN_SAMPLES}")
-    return Experiment(str(path), np.ascontiguousarray(xx[:stop]), np.ascontiguousarray(uu[:stop]), cfg, first)
-
-
-def _joint_states(messages, what: str):
+    _, _, cm = layout_of(bag, reading)
+    if cm is None or not bag.messages.get(cm):
+        raise IdentificationError(f"{path}: no messages on a command topic ('…/{COMMAND}' {JOINT_STATE}, or "
+                                  f"{DEFAULT_COMMAND_TOPIC} {FLOAT64_ARRAY}); topics: {', '.join(sorted(bag.types))}")
     try:
-        return cdr.joint_states([d for _, d in messages], what)
-    except (HasControlError, ValueError, IndexError) as exc:
-        raise IdentificationError(f"{what}: not readable as sensor_msgs/JointState ({exc})") from None
-
-
-def _by_sample(stamps: np.ndarray, step_ns: int, topic: str, path) -> dict[int, int]:
-    """Sample number -> index of its first message (a state sent again is one sample)."""
-    idx = np.rint(stamps / step_ns).astype(np.int64)
-    if len(idx) and np.abs(stamps - idx * step_ns).max() > step_ns // 100:
-        raise IdentificationError(f"{path}: {topic}: header stamps are not on the sample grid of "
-                                  f"{step_ns * 1e-9:g} s (simulation.step; set it with --config)")
-    out: dict[int, int] = {}
-    for k, i in enumerate(idx.tolist()):
-        out.setdefault(i, k)
-    return out
+        rec = read_recording(bag, cfg.episode.step, reading, emit=False)
+    except BagError as exc:
+        if "another model" in str(exc):
+            raise IdentificationError(str(exc)) from None
+        raise
+    if not rec.command.any():
+        raise IdentificationError(f"{path}: no messages on a command topic ('…/{COMMAND}' {JOINT_STATE}, or "
+                                  f"{DEFAULT_COMMAND_TOPIC} {FLOAT64_ARRAY}); topics: {', '.join(sorted(bag.types))}")
+    usable = rec.state & rec.command & np.isfinite(rec.x).all(axis=1) & np.isfinite(rec.u)
+    if not usable.any():
+        raise IdentificationError(f"{path}: no command answers a recorded state (their stamps never match)")
+    out = rec.state & np.isfinite(rec.x[:, 0]) & (np.abs(rec.x[:, 0]) > cfg.episode.y_limit)
+    stop = int(np.argmax(out)) if out.any() else rec.samples
+    usable[stop:] = False
+    good = np.flatnonzero(usable)
+    if len(good) < MIN_SAMPLES:
+        raise IdentificationError(f"{path}: {len(good)} usable samples of state and command; "
+                                  f"identification needs at least {MIN_SAMPLES}")
+    first, last = int(good[0]), int(good[-1]) + 1
+    ok = usable[first:last]
+    gaps = np.flatnonzero(~ok)
+    keep = np.maximum.accumulate(np.where(ok, np.arange(len(ok)), 0))     # a gap holds the last usable sample
+    xx, uu = rec.x[first:last][keep], rec.u[first:last][keep]
+    for line in rec.notes:                    # once the recording is accepted: a refusal stays one line
+        on_warning(line)
+    if len(gaps):
+        on_warning(f"{path}: {len(gaps)} of {len(ok)} samples from t = {first * cfg.episode.step:.6f} s without "
+                   "a finite state and its command (dropped, non-finite or unanswered): identify leaves out "
+                   "every segment that spans one")
+    return Experiment(str(path), np.ascontiguousarray(xx), np.ascontiguousarray(uu), cfg, first,
+                      gaps.astype(np.int64))
 
 
 @njit(**KERNEL)

@@ -23,12 +23,13 @@ PRESSURE_MARGIN = 0.02
 def segment_starts(exp: Experiment, length: int = SEGMENT_SAMPLES, skip: int = 1) -> np.ndarray:
     """First samples of disjoint segments of ``length`` steps (one sample apart,
     so no two share a measurement), leaving out the first ``skip`` segments
-    and those that touch a pressure bound."""
+    and those that touch a pressure bound or a gap of the recording (``exp.gaps``)."""
     a = exp.cfg.plant.actuator(exp.cfg.actuator)
     lo = a.return_pressure + PRESSURE_MARGIN * (a.supply_pressure - a.return_pressure)
     hi = a.supply_pressure - PRESSURE_MARGIN * (a.supply_pressure - a.return_pressure)
     p = exp.x[:, 2:4]
     bad = ((p < lo) | (p > hi)).any(axis=1)
+    bad[exp.gaps] = True                     # a sample recorded without a usable state and command
     starts = np.arange(skip * (length + 1), exp.samples - length - 1, length + 1, dtype=np.int64)
     cum = np.concatenate([[0], np.cumsum(bad)])
     clean = cum[starts + length + 1] - cum[starts] == 0

@@ -1,0 +1,297 @@
+"""Bags as a machine records them (issue #27): wall-clock stamps, jitter,
+dropped states, the ros2_control layout, a bag of only state and command;
+and the one-line refusals (a truncated payload, a conflicting duplicate).
+
+Every derived bag is written from one clean recorded run (a simulated
+identification experiment whose plant publishes its sensors' readings on
+``/state`` and its true state on ``/true_state``), message bytes rewritten
+as the machine would have written them."""
+import numpy as np
+import pytest
+
+from has_control.bag import BagWriter, PARAMETERS_KEY, parameters_json, read_bag, score_bag, write_trace
+from has_control.bag.recorded import TOLERANCE, read_recording
+from has_control.bag.series import run_series
+from has_control.cli.main import main
+from has_control.config import CONFIG_DIR, build_config, load_config
+from has_control.core.actuator import joint_state
+from has_control.core.cost import score_arrays
+from has_control.core.episode import EpisodeArrays, simulate
+from has_control.identify.data import experiment_from_bag, measured
+from has_control.identify.fit import identify
+from has_control.wire import cdr
+
+TRUTH = {"mass": 1720.0, "damping": 3300.0, "bulk_modulus": 5.6e8, "leakage": 4.5e-13, "valve_gain": 3.3e-4,
+         "valve_time_constant": 8.0e-4}
+SENSORS = {"noise.position": 1e-6, "noise.velocity": 1e-4, "noise.pressure_cap": 1e4, "noise.pressure_rod": 1e4,
+           "noise.seed": 11, "noise.added_by": "plant", "plant.valve_limit": 5e-3}
+MUST = ("mass", "damping", "bulk_modulus", "valve_gain")
+EPOCH = 1_700_000_000 * 10**9            # [ns], a wall clock in 2023
+CMD = "/forward_command_controller/commands"
+
+
+def _quiet(_):
+    pass
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    """(directory, cfg, trace, readings, types, messages, custom data): the clean 4 s recording."""
+    cfg = build_config({**{f"plant.{k}": v for k, v in TRUTH.items()}, **SENSORS, "simulation.horizon": 4.0},
+                       base=load_config([CONFIG_DIR / "identify.yaml"]))
+    tr = simulate(cfg)
+    x = measured(np.column_stack([tr["y"], tr["ydot"], tr["P1"], tr["P2"]]), cfg.noise)
+    d = tmp_path_factory.mktemp("real")
+    raw = d / "raw"
+    w = BagWriter(raw, {PARAMETERS_KEY: parameters_json(cfg)})
+    write_trace(w, tr, cfg)
+    w.close()
+    bag = read_bag(raw)
+    msgs = {t: list(m) for t, m in bag.messages.items()}
+    types = dict(bag.types)
+    msgs["/true_state"], types["/true_state"] = msgs["/state"], types["/state"]
+    stamps = np.array([t for t, _ in msgs["/state"]], dtype=np.int64)
+    js = joint_state(x[:, 0], x[:, 1], x[:, 2], x[:, 3], cfg.actuator.as_array())
+    readings = cdr.encode_joint_states(stamps, ["actuator", "chamber_1", "chamber_2"], np.column_stack(js[0:3]),
+                                       np.column_stack(js[3:6]), np.column_stack(js[6:9]))
+    msgs["/state"] = list(zip(stamps.tolist(), readings))
+    _write(d / "clean", types, msgs, bag.custom_data)
+    return d, cfg, tr, x, types, msgs, bag.custom_data
+
+
+def _write(path, types, msgs, custom):
+    w = BagWriter(path, dict(custom))
+    for t in msgs:
+        w.add_topic(t, types[t])
+    w.write_batches({t: (np.array([lt for lt, _ in m], dtype=np.int64), [b for _, b in m])
+                     for t, m in msgs.items() if m})
+    w.close()
+    return path
+
+
+def _stamp(data: bytes, ns: int) -> bytes:
+    """A JointState with header.stamp set to ``ns``."""
+    import struct
+    return data[:4] + struct.pack("<iI", ns // 10**9, ns % 10**9) + data[12:]
+
+
+def _stamp_of(data: bytes) -> int:
+    return int(cdr.stamps_ns([data])[0])
+
+
+def _derive(clean, kind):
+    d, cfg, tr, x, types, msgs, custom = clean
+    types, msgs = dict(types), {t: list(m) for t, m in msgs.items()}
+    rng = np.random.default_rng(27)
+    stamped = ("/state", "/true_state", "/command")
+    if kind == "epoch":
+        msgs = {t: [(lt + EPOCH, _stamp(b, _stamp_of(b) + EPOCH) if t in stamped else b) for lt, b in m]
+                for t, m in msgs.items()}
+    elif kind == "jitter":
+        n = len(msgs["/state"])
+        jit = rng.uniform(-50e3, 50e3, n).astype(np.int64)       # ±50 µs
+        for t in stamped:
+            msgs[t] = [(lt, _stamp(b, _stamp_of(b) + int(jit[i]))) for i, (lt, b) in enumerate(msgs[t])]
+    elif kind == "dropped":
+        n = len(msgs["/state"])
+        gone = set(rng.choice(np.arange(1, n), size=n // 100, replace=False).tolist())
+        for t in ("/state", "/true_state"):
+            msgs[t] = [m for i, m in enumerate(msgs[t]) if i not in gone]
+    elif kind == "ros2_control":
+        u = cdr.joint_states([b for _, b in msgs["/command"]])[1][:, 0]
+        cmds = cdr.encode_float64_arrays(u[:, None])                 # no layout, as forward_command_controller
+        keep = {"/joint_states": msgs["/state"],
+                CMD: [(lt + 100_000, c) for (lt, _), c in zip(msgs["/command"], cmds)]}   # answered 0.1 ms later
+        types = {"/joint_states": types["/state"], CMD: "std_msgs/msg/Float64MultiArray"}
+        msgs = keep
+    elif kind == "state_command":
+        msgs = {t: msgs[t] for t in ("/state", "/command")}
+    types = {t: types[t] for t in msgs}
+    return _write(d / kind, types, msgs, custom)
+
+
+@pytest.fixture(scope="module")
+def derived(clean):
+    return {k: _derive(clean, k) for k in ("epoch", "jitter", "dropped", "ros2_control", "state_command")}
+
+
+@pytest.fixture(scope="module")
+def clean_fit(clean):
+    d = clean[0]
+    return identify([experiment_from_bag(d / "clean", on_warning=_quiet)])
+
+
+def _measured_J(clean):
+    """J of the readings against the run's reference (what a bag without true_state scores)."""
+    _, cfg, tr, x, *_ = clean
+    return score_arrays(tr["x1d"] - x[:, 0], tr["u"], EpisodeArrays.from_config(cfg).episode).J
+
+
+def test_each_derived_bag_reads_the_clean_samples_and_says_what_it_did(clean, derived):
+    d, cfg, tr, x, *_ = clean
+    for kind, path in derived.items():
+        notes = []
+        rec = read_recording(read_bag(path, on_warning=notes.append), cfg.episode.step)
+        got = rec.x[rec.state]
+        ref = x[rec.state[:len(x)]]
+        np.testing.assert_array_equal(got, ref, err_msg=kind)          # the same values on the same samples
+        np.testing.assert_array_equal(rec.u[rec.command], tr["u"][rec.command[:len(x)]], err_msg=kind)
+        text = "\n".join(notes)
+        if kind == "epoch":
+            assert rec.epoch and rec.samples == len(x) and "not simulation time" in text
+        if kind == "jitter":
+            assert "each message taken as its nearest sample" in text and rec.samples == len(x)
+        if kind == "dropped":
+            assert len(rec.dropped) == len(x) // 100 and f"{len(x) // 100} of {len(x)} samples have no state" in text
+        if kind == "ros2_control":
+            assert rec.layout == "ros2_control" and "the first command logged after state k" in text
+            assert rec.command.all()
+
+
+def test_identify_gives_the_clean_estimates_within_their_intervals(clean, derived, clean_fit):
+    ref = clean_fit.estimates
+    for kind, path in derived.items():
+        warned = []
+        res = identify([experiment_from_bag(path, on_warning=warned.append)])
+        for k in MUST:
+            e = res.estimates[k]
+            assert e.lower <= ref[k].value <= e.upper, (kind, k, e, ref[k])
+            if kind != "dropped":                   # the same samples: the same numbers
+                assert e.value == pytest.approx(ref[k].value, rel=1e-9), (kind, k)
+        if kind == "dropped":
+            assert res.segments < clean_fit.segments                    # the segments spanning a drop left out
+            assert any("leaves out every segment that spans one" in w for w in warned)
+
+
+def test_score_gives_the_clean_J_or_states_its_policy(clean, derived, capsys):
+    J_clean = score_bag(clean[0] / "clean")[0].J
+    J_meas = _measured_J(clean)
+    for kind, path in derived.items():
+        if kind == "dropped":
+            assert main(["score", str(path)]) == 2
+            err = capsys.readouterr().err.strip()
+            assert "\n" not in err and "a run with dropped samples is not scored" in err, err
+            continue
+        score, _ = score_bag(path, on_warning=_quiet)
+        expect = J_clean if kind in ("epoch", "jitter") else J_meas    # no true_state: the readings are scored
+        assert score.J == pytest.approx(expect, rel=1e-9), kind
+    assert main(["score", str(derived["state_command"])]) == 0
+    err = capsys.readouterr().err
+    assert "the reference and the metrics recomputed from has_control/parameters of the bag" in err
+
+
+def test_plot_accepts_every_derived_bag_and_shows_the_drops_as_gaps(clean, derived, tmp_path, capsys):
+    x = clean[3]
+    for kind, path in derived.items():
+        out = tmp_path / f"{kind}.png"
+        assert main(["plot", str(path), "--out", str(out)]) == 0, capsys.readouterr().err
+        assert out.read_bytes()[:4] == b"\x89PNG"
+    s = run_series(derived["dropped"], on_warning=_quiet)
+    assert np.isnan(s.y).sum() == len(x) // 100 and np.isfinite(s.x1d).all()
+    s = run_series(derived["state_command"], on_warning=_quiet)
+    np.testing.assert_allclose(s.x1d, clean[2]["x1d"], rtol=0, atol=1e-15)   # the reference recomputed
+
+
+def test_bag_info_says_the_layout_and_the_drops(clean, derived, capsys):
+    assert main(["bag-info", str(derived["ros2_control"])]) == 0
+    out = capsys.readouterr().out
+    assert "Layout:            ros2_control (states /joint_states, commands " + CMD in out
+    assert main(["bag-info", str(derived["dropped"])]) == 0
+    out = capsys.readouterr().out
+    assert f"{len(clean[3]) // 100} dropped" in out
+
+
+def test_a_ros2_control_bag_with_other_joint_names_is_read_through_state_interfaces(clean, tmp_path, capsys):
+    d, cfg, tr, x, types, msgs, custom = clean
+    names = ["rod", "cap_side", "rod_side"]
+    renamed = [(lt, cdr.encode_joint_states([_stamp_of(b)], names, *cdr.joint_states([b])[1:])[0])
+               for lt, b in msgs["/state"]]
+    cmds = [(lt + 1, c) for (lt, _), c in zip(msgs["/command"], cdr.encode_float64_arrays(tr["u"][:, None]))]
+    path = _write(tmp_path / "renamed", {"/joint_states": types["/state"], "/valve/commands":
+                                         "std_msgs/msg/Float64MultiArray"},
+                  {"/joint_states": renamed, "/valve/commands": cmds}, custom)
+    assert main(["score", str(path)]) == 2                       # the default mapping names joints it lacks
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "actuator/position" in err and "--state-interfaces" in err
+    assert main(["score", str(path), "--json", "--state-interfaces", "rod/position", "rod/velocity",
+                 "cap_side/effort", "rod_side/effort", "--command-topic", "/valve/commands"]) == 0
+    import json
+    assert json.loads(capsys.readouterr().out)["J"] == pytest.approx(_measured_J(clean), rel=1e-9)
+
+
+def _one_line_exit_2(args, capsys, *culprits):
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err and all(c in err for c in culprits), err
+
+
+def test_a_truncated_payload_is_one_line_naming_the_message(clean, tmp_path, capsys):
+    d, cfg, tr, x, types, msgs, custom = clean
+    msgs = {t: list(m) for t, m in msgs.items()}
+    for t in ("/state", "/true_state"):                # score reads the true state, identify the readings
+        lt, b = msgs[t][1234]
+        msgs[t][1234] = (lt, b[:-20])
+    path = _write(tmp_path / "truncated", types, msgs, custom)
+    for cmd in ("score", "plot", "identify"):
+        extra = ["--out", str(tmp_path / "t.png")] if cmd == "plot" else []
+        _one_line_exit_2([cmd, str(path), *extra], capsys, "state: message 1234: truncated")
+
+
+def test_a_conflicting_duplicate_is_one_line_naming_the_sample_and_an_identical_one_is_collapsed(
+        clean, tmp_path, capsys):
+    d, cfg, tr, x, types, msgs, custom = clean
+    st = list(msgs["/state"])
+    other = cdr.encode_joint_states([_stamp_of(st[500][1])], ["actuator", "chamber_1", "chamber_2"],
+                                    np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)))[0]
+    bad = {**msgs, "/state": st[:501] + [(st[500][0], other)] + st[501:],
+           "/true_state": st[:501] + [(st[500][0], other)] + st[501:]}
+    path = _write(tmp_path / "conflict", types, bad, custom)
+    for cmd in ("score", "identify"):
+        _one_line_exit_2([cmd, str(path)], capsys, "two different states for sample 500")
+    same = {**msgs, "/state": st[:501] + [st[500]] + st[501:]}
+    notes = []
+    rec = read_recording(read_bag(_write(tmp_path / "repeat", types, same, custom), on_warning=notes.append),
+                         cfg.episode.step)
+    assert rec.samples == len(x) and any("1 repeated identical message collapsed" in n for n in notes)
+
+
+def test_a_stamp_beyond_the_tolerance_is_one_line_naming_bag_topic_message_and_offset(clean, tmp_path, capsys):
+    d, cfg, tr, x, types, msgs, custom = clean
+    st = list(msgs["/state"])
+    off = int(0.45 * cfg.episode.step * 1e9)
+    assert off > TOLERANCE * cfg.episode.step * 1e9
+    st[77] = (st[77][0], _stamp(st[77][1], _stamp_of(st[77][1]) + off))
+    path = _write(tmp_path / "late", types, {**msgs, "/state": st}, custom)
+    _one_line_exit_2(["plot", str(path), "--out", str(tmp_path / "l.png")], capsys, "late: /state: message 77",
+                     "+135.0 µs from sample 77", "tolerance of ±0.4 step")
+
+
+def test_non_finite_states_are_counted_and_left_out_of_identification(clean, tmp_path):
+    d, cfg, tr, x, types, msgs, custom = clean
+    st = list(msgs["/state"])
+    nan = cdr.encode_joint_states([_stamp_of(st[900][1])], ["actuator", "chamber_1", "chamber_2"],
+                                  np.full((1, 3), np.nan), np.zeros((1, 3)), np.zeros((1, 3)))[0]
+    st[900] = (st[900][0], nan)
+    path = _write(tmp_path / "nan", types, {**msgs, "/state": st}, custom)
+    notes = []
+    exp = experiment_from_bag(path, on_warning=notes.append)
+    assert any("1 state with non-finite values" in n for n in notes)
+    assert list(exp.gaps) == [900 - exp.first] and np.isfinite(exp.x).all()
+
+
+def test_ros2_control_commands_pair_by_log_time_the_first_after_each_state_wins(clean, tmp_path):
+    d, cfg, tr, x, types, msgs, custom = clean
+    u = tr["u"]
+    first = cdr.encode_float64_arrays(u[:, None])
+    later = cdr.encode_float64_arrays(u[:, None] + 1.0)                  # a second, different command per state
+    states = [(lt + 1000, b) for lt, b in msgs["/state"]]
+    cmds = [(0, cdr.encode_float64_arrays([[7.0]])[0])]                # before the first state
+    for (lt, _), a, b in zip(states, first, later):
+        cmds += [(lt + 10_000, a), (lt + 20_000, b)]
+    path = _write(tmp_path / "twice", {"/joint_states": types["/state"], CMD: "std_msgs/msg/Float64MultiArray"},
+                  {"/joint_states": states, CMD: cmds}, custom)
+    notes = []
+    rec = read_recording(read_bag(path, on_warning=notes.append), cfg.episode.step)
+    np.testing.assert_array_equal(rec.u, u)
+    assert any(f"{len(u)} commands not first after their state and 1 logged before the first state: ignored" in n
+               for n in notes), notes
