@@ -7,6 +7,7 @@ import json
 import math
 
 from has_control.cli.args import add_config, add_json, check_apart, check_outputs, figure_path
+from has_control.cli.score import add_reading, reading_of
 from has_control.common.errors import HasControlError
 
 
@@ -25,6 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "a sample of delay; friction) and choose by BIC and the held-out fit; given: the "
                         "configured plant's structure")
     add_config(p, "ros__parameters YAML overriding the parameters stored in the bags (repeatable)")
+    add_reading(p)
     p.add_argument("--bound", nargs=3, action="append", metavar=("KEY", "LOWER", "UPPER"),
                    help="bounds of an estimated parameter [SI] (default: a factor 4 around the model's value)")
     p.add_argument("--tolerance", type=float, default=0.02, metavar="R",
@@ -60,7 +62,8 @@ def run(args) -> int:
             raise HasControlError(f"--bound {key} {lo} {hi}: expected two numbers") from None
     out = identify_bags(args.bags, estimate=args.estimate, configs=args.config or [], bounds=bounds,
                         tolerance=args.tolerance, max_evaluations=args.max_evaluations, out=args.out,
-                        validate_bag=args.validate, plot=args.plot, structure=args.structure)
+                        validate_bag=args.validate, plot=args.plot, structure=args.structure,
+                        reading=reading_of(args))
     result, val = out.result, out.validation
     if args.json:
         doc = result.as_json()

@@ -27,16 +27,18 @@ class IdentifyOutput:
 
 def identify_bags(bags, estimate=None, configs=(), bounds=None, tolerance: float = 0.02,
                   max_evaluations: int = 200, out=None, validate_bag=None, plot=None,
-                  structure: str = "auto") -> IdentifyOutput:
+                  structure: str = "auto", reading=None) -> IdentifyOutput:
     """Identify the plant from the runs in ``bags`` (their parameters
     overridden by ``configs``): with ``structure`` "auto" (and no
     ``estimate``), the model class chosen among the candidate structures
     (:mod:`.structures`); else ``estimate`` (default
     :data:`~.parameters.DEFAULT_KEYS`) in the configured plant's structure.
     Write the params file ``out``; validate on ``validate_bag`` (figure
-    ``plot``). Nothing is written unless the fit converged."""
-    exps = [experiment_from_bag(b, configs) for b in bags]
-    held = experiment_from_bag(validate_bag, configs) if validate_bag else None
+    ``plot``). Nothing is written unless the fit converged. ``reading``: how
+    a ros2_control layout bag is read (:class:`~has_control.bag.recorded.Reading`)."""
+    how = {} if reading is None else {"reading": reading}
+    exps = [experiment_from_bag(b, configs, **how) for b in bags]
+    held = experiment_from_bag(validate_bag, configs, **how) if validate_bag else None
     selection = None
     if structure == "auto" and not estimate:
         selection = select_structure(exps, bounds=bounds, tolerance=tolerance, max_evaluations=max_evaluations,

@@ -56,5 +56,9 @@ def validate(exp: Experiment, result: IdentificationResult | Config) -> Validati
     if m < 2:
         raise IdentificationError(f"{exp.name}: the identified model diverged at once in closed loop")
     meas = exp.x[:m]
-    fit = {c: nrmse_fit(meas[:, k], sim[:m, k]) for k, c in enumerate(CHANNELS)}
+    keep = np.ones(m, dtype=bool)
+    gaps = getattr(exp, "gaps", None)
+    if gaps is not None and len(gaps):
+        keep[gaps[gaps < m]] = False            # rows recorded without a measurement are not compared
+    fit = {c: nrmse_fit(meas[keep, k], sim[:m][keep, k]) for k, c in enumerate(CHANNELS)}
     return Validation(exp.name, fit, exp.t[:m], meas, sim[:m], bool(trace.score.diverged))
