@@ -140,12 +140,16 @@ def main(argv=None) -> int:
         tu = f" J ratio {row['tuning']['ratio']:.4f}" if "tuning" in row else ""
         fit = " ".join(f"{c} {v:.1f}" for c, v in row["validation"].items())
         print(f"plant {i:2d}: {row['seconds']:.2f} s ({row['cpu_seconds']:.2f} s CPU)  {st}  fit {fit}{tu}", flush=True)
-    s = summary(rows)
-    print(json.dumps(s, indent=1, default=float))
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"rows": rows, "summary": s}, f, indent=1, default=float)
+    report(rows, summary(rows), args.json)
     return 0
+
+
+def report(rows: list[dict], s: dict, path: str | None) -> None:
+    """A study's summary on stdout and, with ``path``, every row and the summary as JSON."""
+    print(json.dumps(s, indent=1, default=float))
+    if path:
+        with open(path, "w") as f:
+            json.dump({"rows": rows, "summary": s}, f, indent=1, default=float)
 
 
 if __name__ == "__main__":

@@ -20,13 +20,12 @@ machines also the verdict from the old experiment alone. A study, not a test.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 
 import numpy as np
 
-from has_control.bench.identification import SENSORS, VARIED
+from has_control.bench.identification import SENSORS, VARIED, report
 from has_control.config import CONFIG_DIR, build_config, load_config
 from has_control.core.episode import simulate
 from has_control.identify.data import Experiment, experiment_from_trace
@@ -147,11 +146,7 @@ def main(argv=None) -> int:
                     f"{row['old_alone']['valve_determined']}" if "old_alone" in row else ""
             print(f"{kind} {i:2d}: {row['seconds']:.1f} s  {row['chosen']:<28} "
                   f"{'ok ' if _ok(kind, row) else 'NO '} {row['verdict']['line'][:60]}  {est}{extra}", flush=True)
-    s = summary(rows)
-    print(json.dumps(s, indent=1, default=float))
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"rows": rows, "summary": s}, f, indent=1, default=float)
+    report(rows, summary(rows), args.json)
     return 0
 
 
