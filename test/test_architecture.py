@@ -26,6 +26,7 @@ WINGS = {
     "plots": 4,     # figures
     "tuning": 5,    # optimisers, sessions, robustness, the paper experiment, Dask
     "identify": 5,  # plant parameters from recorded runs: reads bags, simulates with core (beside tuning)
+    "loop": 5,      # the sample loop without ROS: plant and controller processes, guards, ports, schedules
     "nodes": 6,     # the ROS layer
     "bench": 7,     # benchmarks
     "cli": 8,       # the command line and the demo
@@ -34,7 +35,8 @@ ROS = ("rclpy", "sensor_msgs", "std_msgs", "rosgraph_msgs", "diagnostic_msgs", "
 BAGS = ("rosbags", "mcap")
 #: What each wing may not load, directly or through another module.
 BANNED = {"common": ROS + BAGS, "core": ROS + BAGS, "config": ROS + BAGS, "wire": ROS + BAGS,
-          "bag": ROS, "plots": ROS, "tuning": ROS, "identify": ROS}
+          "bag": ROS, "plots": ROS, "tuning": ROS, "identify": ROS,
+          "loop": ROS + BAGS}
 
 
 def _modules():
