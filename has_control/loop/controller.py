@@ -107,7 +107,8 @@ class ControllerProcess:
     # --- update ----------------------------------------------------------------
     def answer(self, data) -> int:
         """Answer one serialized state: the sample index, or MALFORMED / NOT_FINITE (nothing written)."""
-        self.take_pending()
+        if self._pending is not None:
+            self.take_pending()
         return steps.controller_sample(data, self.mem, self.gains, self.ap, self.cp, self.rp, self.sp, self.seed,
                                        self.dt, self.step_ns, self.command, self.internals, self.reference,
                                        self.trace)

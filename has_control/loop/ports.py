@@ -104,7 +104,8 @@ class HasControlPort(_Port):
         if i < 0:
             p.refused("a non-finite value" if i == NOT_FINITE else "not the plant's JointState on the sample grid")
             return
-        self._announce(i)
+        if p.announce:
+            self._announce(i)
         self.last_state, self.last_command = data, bytes(p.command)
         self.out.command(self.last_command)
         self._answered(began)

@@ -56,6 +56,12 @@ def state_message(sample: int, step_ns: int, x, a: Actuator) -> JointState:
     return msg
 
 
+def normalise_namespace(namespace: str | None) -> str:
+    """A namespace as ROS resolves it: ``sim0`` → ``/sim0``; '' or '/' → '' (the root)."""
+    namespace = (namespace or "").strip("/")
+    return f"/{namespace}" if namespace else ""
+
+
 def publish_diagnostics(node, publisher, what: str, hardware_id: str, values: dict, ok: bool, message: str) -> None:
     """One ``diagnostic_msgs/DiagnosticArray`` on ``publisher``: status "<node>: ``what``",
     OK or WARN, ``values`` as key/value strings (floats to 6 significant digits)."""

@@ -23,7 +23,7 @@ from has_control.core.cost import Score, score_arrays
 from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.managed import bring_up
-from has_control.nodes.runtime import borrowed_context, tee
+from has_control.nodes.runtime import borrowed_context, normalise_namespace, tee
 from has_control.wire import cdr
 from has_control.wire.codec import column_label
 from has_control.wire.topics import FLOAT64_ARRAY, MEASURED_RUN_TOPICS, MISSED, MISSED_COLUMNS
@@ -235,12 +235,6 @@ class _Composed:
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         figures = loop_figures(plant.sample, loop.seconds, cfg.episode.step, plant.failsafe_events, loop.paced)
         return StackRun(trace, score, seconds, plant.failsafe_events, bag, figures, loop.missed_at, close_seconds)
-
-
-def normalise_namespace(namespace: str | None) -> str:
-    """A namespace as ROS resolves it: ``sim0`` → ``/sim0``; '' or '/' → '' (the root)."""
-    namespace = (namespace or "").strip("/")
-    return f"/{namespace}" if namespace else ""
 
 
 def _bring_up(node) -> None:
