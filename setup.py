@@ -17,13 +17,13 @@ setup(
         # ``ros2 run has_control plant`` (colcon): lib/has_control/<node>; pip puts only has-control* on PATH
         ("lib/" + package_name, glob("resource/ros2_run/*")),
     ],
-    install_requires=["setuptools", "numpy", "numba", "matplotlib", "pyyaml", "rosbags", "zstandard", "cma"],
+    install_requires=["setuptools", "numpy", "numba", "matplotlib", "pyyaml", "rosbags", "zstandard", "cma", "scipy"],
     zip_safe=True,
     maintainer="has_control maintainers",
     maintainer_email="maintainers@has-control.dev",
     description="Adaptive back-stepping control of a hydraulic suspension actuator, tuned by PSO.",
     license="Apache-2.0",
-    extras_require={"test": ["pytest", "scipy", "mcap", "mcap-ros2-support", "foxglove-sdk", "websockets"],
+    extras_require={"test": ["pytest", "mcap", "mcap-ros2-support", "foxglove-sdk", "websockets"],
                     "live": ["foxglove-sdk"],              # has-control stack --foxglove, foxglove_port
                     "dask": ["dask", "distributed"]},      # --dask: the batch evaluator on a Dask cluster
     entry_points={

@@ -27,6 +27,7 @@ WINGS = {
     "tuning": 5,    # optimisers, sessions, robustness, the paper experiment, Dask
     "identify": 5,  # plant parameters from recorded runs: reads bags, simulates with core (beside tuning)
     "deploy": 5,    # guarded deployment: the watchdog and the stepped move to tuned gains (beside tuning)
+    "loop": 5,      # the sample loop without ROS: plant and controller processes, guards, ports, schedules
     "nodes": 6,     # the ROS layer
     "bench": 7,     # benchmarks
     "cli": 8,       # the command line and the demo
@@ -35,7 +36,8 @@ ROS = ("rclpy", "sensor_msgs", "std_msgs", "rosgraph_msgs", "diagnostic_msgs", "
 BAGS = ("rosbags", "mcap")
 #: What each wing may not load, directly or through another module.
 BANNED = {"common": ROS + BAGS, "core": ROS + BAGS, "config": ROS + BAGS, "wire": ROS + BAGS,
-          "bag": ROS, "plots": ROS, "tuning": ROS, "identify": ROS, "deploy": ROS}
+          "bag": ROS, "plots": ROS, "tuning": ROS, "identify": ROS, "deploy": ROS,
+          "loop": ROS + BAGS}
 
 
 def _modules():

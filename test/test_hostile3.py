@@ -454,6 +454,7 @@ def test_the_controller_builds_a_new_road_off_its_executor(context, monkeypatch)
 
     from rclpy.parameter import Parameter
 
+    import has_control.loop.controller as controller_process     # the process builds the road, the node hosts it
     import has_control.nodes.controller_node as controller_node
     names = []
 
@@ -461,7 +462,7 @@ def test_the_controller_builds_a_new_road_off_its_executor(context, monkeypatch)
         def __init__(self, *args, **kwargs):
             names.append(kwargs.get("name"))
             super().__init__(*args, **kwargs)
-    monkeypatch.setattr(controller_node, "threading", types.SimpleNamespace(Thread=Recorded, Lock=threading.Lock))
+    monkeypatch.setattr(controller_process, "threading", types.SimpleNamespace(Thread=Recorded, Lock=threading.Lock))
     node = controller_node.ControllerNode(context=context)
     try:
         assert node.set_parameters_atomically([Parameter("reference.kind", value="road"),

@@ -16,7 +16,7 @@ from has_control.config import build_config, load_scenarios, with_horizon
 from has_control.core.episode import simulate
 from has_control.core.params import Config
 from has_control.core.scenarios import Aggregate, ScenarioScores
-from has_control.nodes.pacing import LoopStats, _extend
+from has_control.loop.schedule import LoopStats, _extend
 from has_control.nodes.stack import missed_messages, run_stack
 from has_control.plots.figures import draw_convergence_spread, draw_robustness
 from has_control.plots.run_figure import draw, view_of_series, view_of_trace

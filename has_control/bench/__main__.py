@@ -17,6 +17,7 @@ from has_control.bench.foxglove import bench_foxglove
 from has_control.bench.graph import bench_graph, print_graph
 from has_control.bench.scoring import bench_scoring
 from has_control.bench.tuning import bench_optimiser, bench_paper, bench_roads, bench_scenarios
+from has_control.bench.startup import bench_startup, print_startup
 from has_control.bench.tuners import print_tuners
 
 
@@ -28,6 +29,8 @@ def main(argv=None) -> int:
     ap.add_argument("--evaluator", action="store_true",
                     help="run only the evaluator comparison (blocks against the plain loop)")
     ap.add_argument("--graph", action="store_true", help="run only the node-graph table (about a minute)")
+    ap.add_argument("--startup", action="store_true",
+                    help="run only the start-up row: a warm simulate --duration 2 against import numba, numpy")
     ap.add_argument("--scenarios", action="store_true",
                     help="run only the scenario scaling (episodes/s on 1, 10 and 100 scenarios) and a road "
                          "scenario's time and memory against a sine one's")
@@ -49,6 +52,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.foxglove:
         bench_foxglove()
+        return 0
+    if args.startup:
+        print_startup(bench_startup(repeats=args.repeats), args.repeats)
         return 0
     if args.tuners:
         print_tuners(args.seeds, args.methods, args.budgets, args.robust, args.markdown)
@@ -109,6 +115,7 @@ def main(argv=None) -> int:
               f"{o['method']} tuning run ({o['seconds']:.1f} s) is spent outside the evaluator")
     print(f"scoring a 10 s bag (33,333 samples, 5 topics): {bench_scoring():.3f} s")
     print_graph(bench_graph(repeats=args.repeats))
+    print_startup(bench_startup(repeats=args.repeats), args.repeats)
     return 0
 
 

@@ -11,7 +11,7 @@ process and as ``ros2 run``-style processes. Each figure is the best of
 
 Real time across processes is measured against its limit on this machine:
 a bare paced cross-process loop (:func:`bare_paced`: the plant's own pacing,
-:func:`~has_control.nodes.pacing.run_paced`, with the same period, deadline
+:func:`~has_control.loop.schedule.run_loop` (paced), with the same period, deadline
 rule and priority, driving raw state bytes to a second process that answers
 each with a command stamped like it, no plant or controller arithmetic).
 The live-view row runs ``stack --realtime`` in one process with a Foxglove
@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 from has_control.config import with_horizon
 from has_control.core.params import Config
-from has_control.nodes.pacing import run_paced
+from has_control.loop.schedule import Paced, run_loop
 from has_control.nodes.runtime import CONTROL_QOS, spin
 from has_control.nodes.stack import run_stack
 from has_control.wire.topics import COMMAND, COMMAND_LAYOUT, COMMAND_NAMES, RUN_TOPICS, STATE, STATE_LAYOUT, STATE_NAMES
@@ -117,7 +117,7 @@ def bare_round_trips(samples: int, two_processes: bool, domain: int) -> float:
 
 
 class _BarePlant:
-    """The plant's side of the bare paced loop, for :func:`~has_control.nodes.pacing.run_paced`:
+    """The plant's side of the bare paced loop, for :func:`~has_control.loop.schedule.run_loop` (paced):
     state bytes stamped with the sample out, the stamp of each answer in; nothing computed."""
 
     failsafe_samples = 10
@@ -154,7 +154,8 @@ class _BarePlant:
     def commands_back(self) -> None:
         pass
 
-    def get_logger(self):
+    @property
+    def logger(self):
         return self.node.get_logger()
 
 
@@ -201,7 +202,8 @@ def _bare_paced_here(samples: int, domain: int | None, priority: int = 50, warm_
             return {"error": "the echo process did not answer"}
         plant.command_sample = -1
         gc.collect()
-        st = run_paced(ex, plant, priority=priority).as_dict()
+        paced = Paced(failsafe_samples=plant.failsafe_samples)
+        st = run_loop(plant, ex.spin_once, paced, priority=priority).as_dict()
         ex.shutdown()
         node.destroy_node()
         return {"samples_per_second": st["rate_hz"], "realtime_factor": st["realtime_factor"],

@@ -36,6 +36,7 @@ from std_msgs.msg import Float64MultiArray
 
 from has_control.bag import PARAMETERS_KEY, BagWriter, QosSpec, as_batch, parameters_json
 from has_control.bag.process import BagProcess
+from has_control.nodes.runtime import normalise_namespace
 from has_control.wire.topics import (CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, QOS, RUN_TOPICS, STATE,
                                      STATE_LAYOUT)
 
@@ -58,9 +59,7 @@ def _subscription_qos(transient_local: bool) -> QoSProfile:
 
 def topic_name(namespace: str, relative: str) -> str:
     """The absolute name of run topic ``relative`` in ``namespace`` (``sim0`` and ``/sim0/`` are ``/sim0``)."""
-    ns = namespace.strip("/")
-    ns = f"/{ns}" if ns else ""
-    return f"{ns}/{relative}" if ns else f"/{relative}"
+    return f"{normalise_namespace(namespace)}/{relative}"
 
 
 class Recorder:

@@ -56,6 +56,25 @@ def state_message(sample: int, step_ns: int, x, a: Actuator) -> JointState:
     return msg
 
 
+def normalise_namespace(namespace: str | None) -> str:
+    """A namespace as ROS resolves it: ``sim0`` → ``/sim0``; '' or '/' → '' (the root)."""
+    namespace = (namespace or "").strip("/")
+    return f"/{namespace}" if namespace else ""
+
+
+def publish_diagnostics(node, publisher, what: str, hardware_id: str, values: dict, ok: bool, message: str) -> None:
+    """One ``diagnostic_msgs/DiagnosticArray`` on ``publisher``: status "<node>: ``what``",
+    OK or WARN, ``values`` as key/value strings (floats to 6 significant digits)."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    status = DiagnosticStatus(
+        level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
+        name=f"{node.get_fully_qualified_name()}: {what}", message=message, hardware_id=hardware_id,
+        values=[KeyValue(key=k, value=f"{v:.6g}" if isinstance(v, float) else str(v)) for k, v in values.items()])
+    msg = DiagnosticArray(status=[status])
+    msg.header.stamp = node.get_clock().now().to_msg()
+    publisher.publish(msg)
+
+
 def raw_publish(publisher, tap=None):
     """A function that publishes serialized bytes (``publish(bytes)``) on
     ``publisher``, and hands them to ``tap(topic)``, an in-process observer

@@ -23,7 +23,7 @@ from has_control.core.cost import Score, score_arrays
 from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.managed import bring_up
-from has_control.nodes.runtime import borrowed_context, tee
+from has_control.nodes.runtime import borrowed_context, normalise_namespace, tee
 from has_control.wire import cdr
 from has_control.wire.codec import column_label
 from has_control.wire.topics import FLOAT64_ARRAY, MEASURED_RUN_TOPICS, MISSED, MISSED_COLUMNS
@@ -193,11 +193,12 @@ class _Composed:
                     stop_if_conflicts()
                     if progress is not None:
                         progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))
-                stats = plant.run_realtime(self.executor, on_second=each_second)
+                stats = plant.run(self.executor, on_second=each_second)
                 if self.recorder is not None:
                     self.recorder.add(MISSED, FLOAT64_ARRAY, missed_messages(stats, plant.log, cfg.episode.step))
                 return _Loop(stats.as_dict(), stats.missed_at, time.perf_counter() - started)
-            _spin_lockstep(self.executor, plant, n, timeout, progress, stop_if_conflicts)
+            plant.run(self.executor, on_second=_lockstep_progress(progress, n),
+                      check=_lockstep_check(plant, timeout, stop_if_conflicts))
             return _Loop(None, [], time.perf_counter() - started)
         finally:
             gc.enable()
@@ -234,12 +235,6 @@ class _Composed:
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         figures = loop_figures(plant.sample, loop.seconds, cfg.episode.step, plant.failsafe_events, loop.paced)
         return StackRun(trace, score, seconds, plant.failsafe_events, bag, figures, loop.missed_at, close_seconds)
-
-
-def normalise_namespace(namespace: str | None) -> str:
-    """A namespace as ROS resolves it: ``sim0`` → ``/sim0``; '' or '/' → '' (the root)."""
-    namespace = (namespace or "").strip("/")
-    return f"/{namespace}" if namespace else ""
 
 
 def _bring_up(node) -> None:
@@ -329,27 +324,29 @@ def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndar
     return trace
 
 
-def _spin_lockstep(executor, plant, samples: int, timeout: float, progress, check) -> None:
-    """Serve the lock-step chain of callbacks until the plant's episode ends
-    (``check()`` every 256 events, e.g. to end it early)."""
+def _lockstep_check(plant, timeout: float, check):
+    """``check()`` after every burst of lock-step events; past ``timeout`` [s] the run is over."""
     deadline = time.monotonic() + timeout
-    report = time.monotonic() + 1.0
-    last = (time.perf_counter(), 0)
-    spin_once = executor.spin_once
-    while not plant.finished:
-        for _ in range(256):
-            spin_once(timeout_sec=0.1)
-            if plant.finished:
-                break
+
+    def each_burst() -> None:
         check()
-        now = time.monotonic()
-        if now > deadline:
-            break
-        if progress is not None and now >= report:
-            report = now + 1.0
-            t, done = time.perf_counter(), plant.sample
+        if time.monotonic() > deadline:
+            plant.finished = True
+    return each_burst
+
+
+def _lockstep_progress(progress, samples: int):
+    """``progress(done, samples, rate over the last second)`` once a second, or None."""
+    if progress is None:
+        return None
+    last = [time.perf_counter(), 0]
+
+    def each_second(stats) -> None:
+        t, done = time.perf_counter(), stats.samples
+        if done:
             progress(done, samples, (done - last[1]) / (t - last[0]))
-            last = (t, done)
+        last[:] = [t, done]
+    return each_second
 
 
 def _wait_for_match(executor, plant, controller, timeout: float = 10.0) -> None:

@@ -36,32 +36,23 @@ once per iteration.
 from __future__ import annotations
 
 import math
-import queue
 import shutil
 import tempfile
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-from lifecycle_msgs.msg import Transition
-from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.node import Node
-from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from rcl_interfaces.msg import ParameterDescriptor
 
-from has_control.bag import BagError, score_bag
+from has_control.bag import score_bag
 from has_control.common.errors import ConfigError, HasControlError
 from has_control.core.episode import simulate
-from has_control.core.params import Config
 from has_control.tuning.tuner import Tuning, load_tuning, robust_tuning, tuning_from_parameters, tuning_parameters
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
-from has_control.nodes.recorder import Recorder
+from has_control.nodes.lanes import GraphEvaluator, Lane
 from has_control.wire.topics import PROGRESS_LAYOUT
 from has_control.nodes.runtime import node_main, spin
 from has_control.tuning.session import run_session
@@ -116,123 +107,27 @@ class Cancelled(Exception):
     """``~/cancel`` was called: the session stops at the next episode or iteration."""
 
 
-def _wait(future, timeout: float, what: str):
-    end = time.monotonic() + timeout
-    while not future.done():
-        if time.monotonic() > end:
-            raise HasControlError(f"{what}: no answer within {timeout:g} s")
-        time.sleep(0.0005)
-    return future.result()
+class _Progress:
+    """The session's observer: each iteration on ``~/progress``, in ``status`` and
+    (every ``every``-th and the last) in the log; a cancel is raised here."""
 
+    def __init__(self, node: "TunerNode", every: int):
+        self.node, self.every, self.t0 = node, max(1, every), time.perf_counter()
 
-class Lane:
-    """One plant/controller pair in ``namespace``, driven through services."""
-
-    def __init__(self, node: "TunerNode", namespace: str, controller: str, plant: str, y_limit: float):
-        ns = namespace.strip("/")
-        ns = f"/{ns}" if ns else ""                # sim0 is /sim0, as ROS resolves it
-        self.namespace = ns or "/"
-        self.controller_name, self.plant_name = f"{ns}/{controller}", f"{ns}/{plant}"
-        self.controller_params = AsyncParameterClient(node, self.controller_name)
-        self.plant_params = AsyncParameterClient(node, self.plant_name)
-        self.controller_reset = node.create_client(Trigger, f"{self.controller_name}/reset")
-        self.plant_reset = node.create_client(Trigger, f"{self.plant_name}/reset")
-        self.plant_start = node.create_client(Trigger, f"{self.plant_name}/start")
-        self.recorder = Recorder(node, ns, y_limit=y_limit)
-        self.logger = node.get_logger()
-        self.lifecycle = {name: (node.create_client(GetState, f"{name}/get_state"),
-                                 node.create_client(ChangeState, f"{name}/change_state"))
-                          for name in (self.plant_name, self.controller_name)}
-        self.up: set[str] = set()
-
-    def bring_up(self) -> None:
-        """Configure and activate the lane's managed nodes that are not active yet
-        (a plant or controller started with ``autostart: false``)."""
-        for name, (get, change) in self.lifecycle.items():
-            if name in self.up or not get.service_is_ready():
-                continue
-            label = _wait(get.call_async(GetState.Request()), 10.0, get.srv_name).current_state.label
-            for before, transition in (("unconfigured", Transition.TRANSITION_CONFIGURE),
-                                       ("inactive", Transition.TRANSITION_ACTIVATE)):
-                if label == before:
-                    request = ChangeState.Request()
-                    request.transition.id = transition
-                    if not _wait(change.call_async(request), 60.0, change.srv_name).success:
-                        raise HasControlError(f"{name}: refused the transition from {before} (see its log)")
-                    self.logger.info(f"{name}: {before} -> {'inactive' if before == 'unconfigured' else 'active'}")
-                    label = "inactive" if before == "unconfigured" else "active"
-            if label == "active":
-                self.up.add(name)
-
-    def ready(self) -> bool:
-        return (self.controller_params.services_are_ready() and self.plant_params.services_are_ready()
-                and all(c.service_is_ready() for c in (self.controller_reset, self.plant_reset, self.plant_start))
-                and self.recorder.connected())
-
-    def _trigger(self, client, timeout: float = 10.0) -> None:
-        res = _wait(client.call_async(Trigger.Request()), timeout, client.srv_name)
-        if not res.success:
-            raise HasControlError(f"{client.srv_name}: {res.message}")
-
-    def set_parameters(self, client: AsyncParameterClient, params: list[Parameter], where: str) -> str | None:
-        """None when accepted, else the reason."""
-        res = _wait(client.set_parameters_atomically(params), 10.0, f"{where}/set_parameters_atomically")
-        r = res.result
-        return None if r.successful else (r.reason or "rejected")
-
-    def set_gains(self, gains) -> str | None:
-        return self.set_parameters(self.controller_params,
-                                   [Parameter(f"gains.k{i + 1}", value=float(g)) for i, g in enumerate(gains)],
-                                   self.controller_name)
-
-    def gains(self) -> list[float]:
-        res = _wait(self.controller_params.get_parameters(["gains.k1", "gains.k2", "gains.k3"]), 10.0,
-                    f"{self.controller_name}/get_parameters")
-        return [v.double_value for v in res.values]
-
-    def run(self, gains, cfg, bag: Path, timeout: float, writer=None, prefix: str = "") -> float | None:
-        """One episode with ``gains`` recorded to ``bag``, and its J from the bag;
-        recorded into ``writer`` (another bag, still open) instead: None, the
-        caller scores it once that bag is closed."""
-        reason = self.set_gains(gains)
-        if reason is not None:
-            self.logger.warning(f"{self.controller_name} rejected k = {tuple(gains)}: {reason}; scored +inf")
-            return math.inf
-        self._trigger(self.plant_reset)
-        self._trigger(self.controller_reset)
-        n = cfg.episode.samples
-        self.recorder.open(bag, cfg, samples=n, writer=writer, prefix=prefix)
-        self._trigger(self.plant_start)
-        finished = self.recorder.done.wait(timeout)
-        end = time.monotonic() + 2.0               # the last sample's reference and internals
-        while finished and not self.recorder.diverged and time.monotonic() < end and not all(
-                self.recorder.count(t) >= n for t in ("state", "controller/reference")):
-            time.sleep(0.001)
-        if writer is not None:
-            self.recorder.detach()
-            return None                             # scored by the caller once the bag is closed
-        self.recorder.close()
-        if not finished:
-            self._trigger(self.plant_reset)
-            self.logger.warning(f"{self.namespace}: episode with k = {tuple(gains)} did not finish "
-                                f"within {timeout:g} s; scored +inf")
-            return math.inf
-        try:
-            score, _ = score_bag(bag, on_warning=self.logger.warning)
-        except BagError as exc:
-            self.logger.warning(f"{exc}; scored +inf")
-            return math.inf
-        return score.J
-
-
-@dataclass
-class _SessionState:
-    """What the session's runner tells the node as it goes: the configuration it
-    tunes on (once the objective is made) and whether plant/controller lanes
-    are up (the batch evaluator runs without them)."""
-
-    cfg: Config | None = None
-    lanes: bool = True
+    def __call__(self, sw) -> None:
+        node, k = self.node, sw.best_x
+        elapsed = time.perf_counter() - self.t0
+        progress = sw.progress()                   # the share of the budget used, 0..1
+        eta = elapsed / progress * (1.0 - progress) if progress > 0 else math.inf
+        node.status = (f"running: {sw.name} iteration {sw.iteration} ({100 * progress:.0f} %), "
+                       f"best J = {sw.best_f:.6e}, ETA {eta:.0f} s")
+        node.progress_pub.publish(PROGRESS_LAYOUT.encode([
+            float(sw.iteration), sw.best_f, *map(float, k), float(sw.evaluations), elapsed, eta]))
+        if sw.iteration % self.every == 0 or sw.done:
+            node.get_logger().info(
+                f"{sw.name} iteration {sw.iteration} ({100 * progress:.0f} %): best J = {sw.best_f:.6e} "
+                f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations, ETA {eta:.0f} s")
+        node._check_cancel()
 
 
 class TunerNode(Node):
@@ -356,85 +251,56 @@ class TunerNode(Node):
 
     def run_session(self) -> dict:
         """The session (the same runner as ``has-control tune``), candidates scored
-        by the batch evaluator or through the lanes, the best gains set on every
-        lane and (``validate_best``) validated through the graph."""
+        by the batch evaluator or through the lanes (:class:`~has_control.nodes.lanes.GraphEvaluator`),
+        the best gains set on every lane and (``validate_best``) validated through the graph."""
         log = self.get_logger()
         record = self.get_parameter("record").value or None
         resume_dir = self.get_parameter("resume").value or None
         timeout = float(self.get_parameter("episode_timeout").value)
         validate = bool(self.get_parameter("validate_best").value)
         scratch = Path(tempfile.mkdtemp(prefix="has_control_tuner_"))
-        t0 = time.perf_counter()
-        every = max(1, int(self.get_parameter("log_every").value))
-        session = _SessionState()
-
-        def lanes_up() -> bool:                   # with evaluator batch, lanes are optional
-            return session.lanes
-
-        def make_objective(cfg):
-            session.cfg = cfg
-            graph = self.evaluator == "graph"
-            session.lanes = self.wait_for_lanes(None if graph else min(5.0, self.lane_timeout), required=graph)
-            if not session.lanes:
-                log.info("no plant/controller lanes found: the batch evaluator alone, validation in-process; "
-                         "the best gains are set on no controller")
-                return None
-            n = cfg.episode.samples
-            for lane in self.lanes:
-                reason = lane.set_parameters(lane.plant_params, [Parameter("samples", value=n)], lane.plant_name)
-                if reason:
-                    raise HasControlError(f"{lane.plant_name} rejected samples = {n}: {reason}")
-            if not graph:
-                return None
+        graph = self.evaluator == "graph"
+        # with evaluator batch, lanes are optional
+        lanes_up = self.wait_for_lanes(None if graph else min(5.0, self.lane_timeout), required=graph)
+        if not lanes_up:
+            log.info("no plant/controller lanes found: the batch evaluator alone, validation in-process; "
+                     "the best gains are set on no controller")
+        evaluator = None
+        if graph:
             directory = resume_dir or record
             keep = bool(directory) and bool(self.get_parameter("keep_episodes").value)
             episodes = Path(directory) / "episodes" if keep else scratch
-            self._announce_graph(cfg, keep, episodes)
-            return self._graph_objective(cfg, episodes, timeout, keep=keep)
-
-        def on_iteration(sw) -> None:
-            k = sw.gbest_x
-            elapsed = time.perf_counter() - t0
-            progress = sw.progress()                   # the share of the budget used, 0..1
-            eta = elapsed / progress * (1.0 - progress) if progress > 0 else math.inf
-            self.status = (f"running: {sw.name} iteration {sw.iteration} ({100 * progress:.0f} %), "
-                           f"best J = {sw.gbest_f:.6e}, ETA {eta:.0f} s")
-            self.progress_pub.publish(PROGRESS_LAYOUT.encode([
-                float(sw.iteration), sw.gbest_f, *map(float, k), float(sw.evaluations), elapsed, eta]))
-            if sw.iteration % every == 0 or sw.done:
-                log.info(f"{sw.name} iteration {sw.iteration} ({100 * progress:.0f} %): best J = {sw.gbest_f:.6e} "
-                         f"at k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), {sw.evaluations} evaluations, "
-                         f"ETA {eta:.0f} s")
-            self._check_cancel()
+            evaluator = GraphEvaluator(self.lanes, episodes, timeout, keep, check=self._check_cancel,
+                                       announce=lambda cfg: self._announce_graph(cfg, keep, episodes))
 
         def record_validation(gains, writer, cfg) -> None:     # through the graph, into the session bag
             self.lanes[0].run(gains, cfg, writer.path, timeout, writer=writer, prefix="/validation")
 
         try:
             run = run_session(self.cfg, self.tuning, record, resume_dir=resume_dir, evaluator=self.evaluator,
-                              make_objective=make_objective, on_iteration=on_iteration,
-                              record_validation=record_validation if validate and lanes_up() else None,
+                              batch=evaluator, on_iteration=_Progress(self, int(self.get_parameter("log_every").value)),
+                              record_validation=record_validation if validate and lanes_up else None,
                               announce=log.info, on_warning=log.warning)
             res, out, best = run.result, dict(run.out), run.result.gains
             if res.bounds is not None:
-                for line in res.bounds.lines():        # one call site per severity (rclpy's rule)
-                    if line.startswith("warning"):
-                        log.warning(line)
-                    else:
-                        log.info(line)
-            out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes] if lanes_up() else [])
-            if not lanes_up():
+                for check in res.bounds.checks:
+                    log.info(f"bounds: {check.line()}")
+                for warning in res.bounds.warnings:
+                    log.warning(f"warning: {warning}")
+            out.update(evaluator=self.evaluator, lanes=[lane.namespace for lane in self.lanes] if lanes_up else [])
+            if run.directory:
+                out["gains_file"] = str(run.directory / "gains.yaml")
+            if not lanes_up:
                 if validate:
-                    validation = simulate(session.cfg, best).score
+                    validation = simulate(run.cfg, best).score
                     out["validation"] = validation.as_json()
                     out["validation_bag"] = None
                     log.info(f"validated k = ({best[0]:.2f}, {best[1]:.2f}, {best[2]:.2f}) in-process: "
                              f"J = {validation.J:.6e}")
-                if run.directory:
-                    out["gains_file"] = str(run.directory / "gains.yaml")
                 out["controller_gains"] = None
                 return out
             for lane in self.lanes:
+                lane.prepare(run.cfg)
                 reason = lane.set_gains(best)
                 if reason:
                     raise HasControlError(f"{lane.controller_name} rejected the best gains {best}: {reason}")
@@ -442,17 +308,17 @@ class TunerNode(Node):
                 bag = run.bag
                 if bag is None:
                     bag = scratch / "validation"
-                    self.lanes[0].run(best, session.cfg, bag, timeout)
+                    self.lanes[0].run(best, run.cfg, bag, timeout)
                 validation, _ = score_bag(bag, on_warning=log.warning)
                 out["validation"] = validation.as_json()
                 out["validation_bag"] = str(bag) if run.bag else None
                 log.info(f"validated k = ({best[0]:.2f}, {best[1]:.2f}, {best[2]:.2f}) through the graph: "
                          f"J = {validation.J:.6e} (batch J = {res.result.fun:.6e})")
-            if run.directory:
-                out["gains_file"] = str(run.directory / "gains.yaml")
             out["controller_gains"] = self.lanes[0].gains()
             return out
         finally:
+            if evaluator is not None:
+                evaluator.close()
             shutil.rmtree(scratch, ignore_errors=True)
 
     def _announce_graph(self, cfg, keep: bool, episodes: Path) -> None:
@@ -469,32 +335,6 @@ class TunerNode(Node):
             f"{_duration(fast)} to {_duration(slow)}; each episode's bag ~{per_bag / 1e6:.1f} MB, "
             + (f"kept under {episodes} ({count * per_bag / 1e9:.2f} GB in all)" if keep
                else "scored then deleted (keep_episodes:=true keeps them)") + "; ~/progress shows the ETA")
-
-    def _graph_objective(self, cfg, episodes: Path, timeout: float, keep: bool):
-        free: queue.Queue[Lane] = queue.Queue()
-        for lane in self.lanes:
-            free.put(lane)
-        pool = ThreadPoolExecutor(max_workers=len(self.lanes), thread_name_prefix="tuner-lane")
-        batch = [0]
-
-        def one(args) -> float:
-            i, gains = args
-            self._check_cancel()
-            lane = free.get()
-            try:
-                bag = episodes / f"batch{batch[0]:04d}_candidate{i:03d}"
-                j = lane.run(gains, cfg, bag, timeout)
-                if not keep:
-                    shutil.rmtree(bag, ignore_errors=True)
-                return j
-            finally:
-                free.put(lane)
-
-        def objective(x: np.ndarray) -> np.ndarray:
-            costs = np.array(list(pool.map(one, enumerate(x))), dtype=np.float64)
-            batch[0] += 1
-            return costs
-        return objective
 
 
 def _duration(seconds: float) -> str:

@@ -1,11 +1,13 @@
 """The tuning methods by name, one table: ``cma-restarts`` (the default) and the
 paper's particle swarms ``pso``, ``pso-cp``, ``pso-cp-tvac``.
 
-Every method is an ask/tell optimiser with the same face: ``name``, ``seed``,
-``ask()``, ``tell(costs)``, ``done``, ``iteration``, ``evaluations``,
-``gbest_x``, ``gbest_f``, ``history``, ``progress()`` (share of its budget
-spent), ``state_dict(history)`` / ``from_state(state)`` and ``result()``.
-:func:`minimize` is the plain function in the style of ``scipy.optimize``.
+Every method is an :class:`~has_control.tuning.optimiser.Optimiser` (ask/tell)
+with the same face: ``name``, ``seed``, ``ask()``, ``tell(costs)``, ``done``,
+``iteration``, ``evaluations``, ``best_x``, ``best_f`` (``gbest_x``,
+``gbest_f``: the older names, still read), ``history``, ``progress()`` (share
+of its budget spent), ``state_dict(history)`` / ``from_state(state)`` and
+``result()``. :func:`minimize` is the one plain function over them, in the style
+of ``scipy.optimize.minimize``.
 """
 from __future__ import annotations
 
@@ -16,7 +18,8 @@ import numpy as np
 
 from has_control.common.errors import shown
 from has_control.tuning.restarts import METHOD as RESTARTS, RestartSettings, Restarts
-from has_control.tuning.swarm import VARIANTS, Swarm, SwarmError, SwarmResult, SwarmSettings, drive
+from has_control.tuning.optimiser import OptimiseResult, SwarmError, drive
+from has_control.tuning.swarm import VARIANTS, Swarm, SwarmSettings
 
 DEFAULT = RESTARTS
 #: Method name -> one line about it (the choices of ``--variant`` and ``swarm.variant``).
@@ -53,7 +56,7 @@ def restore(state: dict):
 
 
 def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, method: str = DEFAULT,
-             seed: int | None = None, callback=None, **options) -> SwarmResult:
+             seed: int | None = None, callback=None, **options) -> OptimiseResult:
     """Minimise ``objective`` ((P, M) candidates -> P costs) over ``bounds =
     (lower, upper)`` with ``method``; ``options`` are the method's settings
     (:class:`RestartSettings` or :class:`SwarmSettings` fields)."""

@@ -36,8 +36,8 @@ from typing import TYPE_CHECKING, Callable, Iterator
 import numpy as np
 
 from has_control.common.errors import shown
-from has_control.tuning.swarm import (
-    IterationRecord, SwarmError, SwarmResult, _check_bounds, drive, record_dict, record_from,
+from has_control.tuning.optimiser import (
+    IterationRecord, SwarmError, SwarmResult, check_bounds as _check_bounds, drive, record_dict, record_from,
 )
 
 if TYPE_CHECKING:                    # pycma is imported where a search starts (see _search)
@@ -209,6 +209,15 @@ class Restarts:
     @property
     def done(self) -> bool:
         return self.stop_reason is not None
+
+    @property
+    def best_x(self) -> np.ndarray:
+        """The best gains so far (``gbest_x``: the name shared with the swarm's, still read)."""
+        return self.gbest_x
+
+    @property
+    def best_f(self) -> float:
+        return self.gbest_f
 
     def progress(self) -> float:
         """Share of the budget spent, 0 .. 1."""

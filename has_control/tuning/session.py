@@ -44,7 +44,8 @@ from has_control.bag import (
 from has_control.common.files import DirectoryLock, write_atomic
 from has_control.config import build_config, write_gains_params
 from has_control.core.episode import simulate
-from has_control.tuning.swarm import Swarm, SwarmResult, record_dict, record_from
+from has_control.tuning.optimiser import OptimiseResult, record_dict, record_from
+from has_control.tuning.swarm import Swarm
 from has_control.tuning.tuner import TuneResult, Tuning, tune, tuning_from_json, tuning_json
 
 SESSION = "session"
@@ -276,7 +277,7 @@ def _last_good_iteration(records, states, tuning: Tuning) -> tuple[int, object |
 
 
 def swarm_result(directory: str | Path):
-    """The session's :class:`SwarmResult` rebuilt from its iteration records
+    """The session's :class:`~has_control.tuning.optimiser.OptimiseResult` rebuilt from its iteration records
     (for the convergence and gain figures)."""
     import math
     bag = read_bag(Path(directory) / SESSION, topics=(ITERATION, RESULT), on_warning=lambda m: None)
@@ -287,41 +288,43 @@ def swarm_result(directory: str | Path):
     if not history:
         raise BagError(f"{Path(directory) / SESSION}: no iteration records")
     last = history[-1]
-    return SwarmResult(last.best_position, last.best_cost, len(history),
-                       sum(len(h.costs) for h in history), "from the session bag",
-                       math.isfinite(last.best_cost), 0, history)
+    return OptimiseResult(last.best_position, last.best_cost, len(history),
+                          sum(len(h.costs) for h in history), "from the session bag",
+                          math.isfinite(last.best_cost), 0, history)
 
 
 @dataclasses.dataclass
 class SessionRun:
     """What a tuning session gave: the result, the keys of ``tune --json``,
-    the session bag (None without a directory) and its directory."""
+    the session bag (None without a directory), its directory and the
+    configuration it tuned on (a resumed session's own)."""
 
     result: TuneResult
     out: dict
     bag: Path | None
     directory: Path | None
+    cfg: object = None              # the Config tuned on
 
 
 def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, resume_dir: str | Path | None = None,
-                replace: bool = False, evaluator: str = "batch", make_objective=None, on_iteration=None,
+                replace: bool = False, evaluator: str = "batch", on_iteration=None,
                 record_validation=None, artefacts=None, announce=None, on_warning=warn, batch=None) -> SessionRun:
     """One tuning session, as both front ends run it (``has-control tune`` and the tuner node).
 
     Opens the session in ``directory`` (or resumes the one in ``resume_dir``
     at its last good iteration; ``cfg`` and ``tuning`` then come from it),
-    tunes with the objective ``make_objective(cfg)`` returns (called once the
-    session's cfg is known; None, or no factory: the batch evaluator),
-    recording every
-    iteration after ``on_iteration(swarm)``, and finishes the session: the
+    tunes with the batch evaluator ``batch`` (default: in this process),
+    recording every iteration after ``on_iteration(swarm)`` (an observer), and finishes the session: the
     result and the validation run of the best gains under ``/validation``
     (``record_validation(gains, writer, cfg)`` records it, e.g. through the
     node graph; default: the in-process trace), ``artefacts(result, directory)``
     (figures), ``gains.yaml`` (a ``--params-file``) and, last, ``tune.json``
     (written then renamed: its presence says the session finished).
-    ``announce(message)`` hears what a resume found. ``batch``: the batch
-    evaluator (see :func:`~has_control.tuning.tuner.tune`; a Dask one gives the
-    same bits, so a session may resume on another).
+    ``announce(message)`` hears what a resume found. ``batch(gains, cfgs)`` has
+    the contract of :func:`~has_control.core.episode.evaluate_configs`
+    (:class:`~has_control.tuning.dask_evaluator.DaskBatch` on Dask, the tuner
+    node's graph evaluator through the lanes; the same bits, so a session may
+    resume on another).
     """
     swarm = stored = session = None
     if resume_dir is not None:
@@ -341,13 +344,12 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
         if session is not None:
             session.record(sw)
     try:
-        objective = make_objective(cfg) if make_objective is not None else None
         if stored is not None:
             res = TuneResult(stored["variant"], stored["seed"], swarm.result(), stored["seconds"],
                              stored.get("scenarios", 0), stored.get("aggregate", ""),
                              BoundDiagnostics.from_json(stored["bounds"]) if "bounds" in stored else None)
         else:
-            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm, objective=objective, batch=batch)
+            res = tune(cfg, tuning, callback=each_iteration, swarm=swarm, batch=batch)
         out = res.as_json()
         bag = None
         if session is not None:
@@ -365,4 +367,4 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
     finally:
         if session is not None:
             session.release()
-    return SessionRun(res, out, bag, Path(directory) if directory is not None else None)
+    return SessionRun(res, out, bag, Path(directory) if directory is not None else None, cfg)

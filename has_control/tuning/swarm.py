@@ -17,13 +17,17 @@ and restore a swarm exactly.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Callable
 
 import numpy as np
 
-from has_control.common.errors import HasControlError, shown
+from has_control.common.errors import shown
 from has_control.common.json_numbers import list_to_json
+from has_control.tuning.optimiser import (  # noqa: F401  (re-exported: the old home of these names)
+    IterationRecord, OptimiseResult, SwarmError, SwarmResult, _from_json, check_bounds as _check_bounds, drive,
+    record_dict, record_from,
+)
 
 
 @dataclass(frozen=True)
@@ -45,16 +49,6 @@ CRAZY_PROBABILITIES = ("exp-difference", "exp-ratio")
 #: iteration's positions (particles x iterations x dimensions float64).
 MAX_PARTICLES = 100_000
 MAX_EVALUATIONS = 10_000_000        # particles x iterations
-
-
-class SwarmError(HasControlError, ValueError):
-    """Invalid swarm settings or bounds (one line naming the setting); ``key``
-    is the setting at fault (``variant``, ``seed``, ``lower``, ...), or
-    ``bounds`` when it is the pair of bounds."""
-
-    def __init__(self, message: str, key: str | None = None):
-        super().__init__(message)
-        self.key = key
 
 
 @dataclass(frozen=True)
@@ -119,57 +113,6 @@ class SwarmSettings:
         return self
 
 
-def _check_bounds(bounds) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        lo, hi = (np.asarray(b, dtype=np.float64).ravel() for b in bounds)
-    except (TypeError, ValueError):
-        raise SwarmError(f"bounds = {bounds!r}: expected (lower, upper) sequences of numbers", key="bounds") from None
-    if lo.shape != hi.shape or lo.size == 0:
-        raise SwarmError(f"bounds: lower {lo.tolist()} and upper {hi.tolist()} differ in length", key="bounds")
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise SwarmError(f"bounds: lower {lo.tolist()} / upper {hi.tolist()} must be finite", key="bounds")
-    if np.any(lo >= hi):
-        i = int(np.argmax(lo >= hi))
-        raise SwarmError(f"bounds[{i}]: lower {lo[i]:g} must be below upper {hi[i]:g}", key="bounds")
-    return lo, hi
-
-
-@dataclass
-class IterationRecord:
-    """What one iteration saw: for convergence plots (paper Figs. 3–6)."""
-
-    iteration: int
-    best_cost: float
-    best_position: np.ndarray
-    mean_cost: float
-    std_cost: float
-    positions: np.ndarray
-    costs: np.ndarray
-
-
-@dataclass
-class SwarmResult:
-    """Outcome of :func:`minimize` (like ``scipy.optimize.OptimizeResult``).
-
-    x: best position; fun: its cost; nit: iterations; nfev: evaluations;
-    message: why it stopped; success: whether a finite optimum was found;
-    nan_costs: how many NaN costs were counted as +inf; history: one
-    :class:`IterationRecord` per iteration.
-    """
-
-    x: np.ndarray
-    fun: float
-    nit: int
-    nfev: int
-    message: str
-    success: bool
-    nan_costs: int
-    history: list[IterationRecord] = field(repr=False, default_factory=list)
-
-    def best_costs(self) -> np.ndarray:
-        return np.array([h.best_cost for h in self.history])
-
-
 class Swarm:
     """A particle swarm driven by ask/tell (SPEC §7)."""
 
@@ -201,6 +144,15 @@ class Swarm:
     @property
     def done(self) -> bool:
         return self.stop_reason is not None
+
+    @property
+    def best_x(self) -> np.ndarray:
+        """The best position so far (``gbest_x``, the swarm's own name)."""
+        return self.gbest_x
+
+    @property
+    def best_f(self) -> float:
+        return self.gbest_f
 
     def progress(self) -> float:
         """Share of the iterations done, 0 .. 1."""
@@ -333,36 +285,6 @@ def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, variant: str
             raise SwarmError(f"minimize: {exc}") from None
         swarm = Swarm(bounds, settings, seed)
     return drive(swarm, objective, callback)
-
-
-def drive(optimiser, objective: Callable[[np.ndarray], np.ndarray],
-          callback: Callable[[object], bool | None] | None = None) -> SwarmResult:
-    """Ask, evaluate, tell until ``optimiser`` (any of the ask/tell methods) is
-    done; ``callback(optimiser)`` after each batch, True stops."""
-    while not optimiser.done:
-        optimiser.tell(objective(optimiser.ask()))
-        if callback is not None and callback(optimiser):
-            optimiser.stop_reason = optimiser.stop_reason or "stopped by callback"
-    return optimiser.result()
-
-
-def _from_json(values) -> list:
-    return [float(v) for v in values]
-
-
-def record_dict(h: IterationRecord) -> dict:
-    """An iteration record as JSON-serialisable data (inverse: :func:`record_from`)."""
-    return {"iteration": h.iteration, "best_cost": list_to_json([h.best_cost])[0],
-            "best_position": h.best_position.tolist(), "mean_cost": list_to_json([h.mean_cost])[0],
-            "std_cost": list_to_json([h.std_cost])[0], "positions": h.positions.tolist(),
-            "costs": list_to_json(h.costs)}
-
-
-def record_from(d: dict) -> IterationRecord:
-    return IterationRecord(int(d["iteration"]), float(d["best_cost"]), np.array(d["best_position"]),
-                           float(d["mean_cost"]), float(d["std_cost"]),
-                           np.array(d["positions"], dtype=np.float64).reshape(-1, len(d["best_position"])),
-                           np.array(_from_json(d["costs"])))
 
 
 __all__ = ["Swarm", "SwarmSettings", "SwarmResult", "SwarmError", "minimize", "VARIANTS", "Variant"]

@@ -26,7 +26,8 @@ from has_control.core.scenarios import Aggregate, parse_aggregate
 from has_control.tuning.bounds import BoundDiagnostics, diagnose
 from has_control.tuning.methods import DEFAULT, check_method, drive, is_swarm, new_optimiser
 from has_control.tuning.restarts import RestartSettings
-from has_control.tuning.swarm import Swarm, SwarmError, SwarmResult, SwarmSettings
+from has_control.tuning.optimiser import OptimiseResult, SwarmError
+from has_control.tuning.swarm import Swarm, SwarmSettings
 from has_control.common.json_numbers import to_json
 
 TUNER_FILE = default_config_files()[0].parent / "tuner.yaml"
@@ -215,7 +216,7 @@ class TuneResult:
 
     variant: str                    # the method
     seed: int
-    result: SwarmResult
+    result: OptimiseResult
     seconds: float
     scenarios: int = 0              # robust tuning: J is the aggregate over this many scenarios
     aggregate: str = ""

@@ -1,0 +1,221 @@
+"""The ROS-free loop wing (has_control/loop): the plant and controller
+processes, the guards, both ports and both schedules of ``run_loop``, wired by
+an in-memory link instead of DDS. Runs without rclpy."""
+from collections import deque
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+
+from has_control.config import with_horizon
+from has_control.core.episode import Col, simulate
+from has_control.core.params import Config
+from has_control.loop.controller import ControllerProcess
+from has_control.loop.guards import AnswerLedger, Conflicts, FailSafe
+from has_control.loop.log import ListLog
+from has_control.loop.plant import PlantProcess
+from has_control.loop.ports import HasControlPort, Outputs, Ros2ControlPort, make_port
+from has_control.loop.schedule import LockStep, Paced, run_loop, schedule_of
+from has_control.wire import steps
+from has_control.wire.codec import get_stamp
+from has_control.wire.joint_mapping import DEFAULT_STATE_INTERFACES, parse_state_interfaces
+from has_control.wire.topics import CLOCK_LAYOUT, COMMAND_LAYOUT, FORWARD_COMMAND_LAYOUT, STATE_LAYOUT
+
+
+class Link:
+    """Plant and controller in one queue: ``spin_once`` delivers one message.
+    ``drop(i)``: the controller's command for sample i is lost."""
+
+    def __init__(self, drop=lambda i: False):
+        self.queue, self.drop = deque(), drop
+        self.sent = self.resent = 0
+        self.plant = self.port = None
+
+    # the plant's port
+    def publish(self, state, true_state, clock) -> bool:
+        self.sent += 1
+        self.queue.append(("state", state))
+        return True
+
+    def resend(self, state) -> None:
+        self.resent += 1
+        self.queue.append(("state", state))
+
+    def connected(self) -> bool:
+        return True
+
+    # the controller's outputs
+    def command(self, data: bytes) -> None:
+        if not self.drop(int(get_stamp(data)) // 300_000):
+            self.queue.append(("command", data))
+
+    def spin_once(self, timeout_sec: float = 0.0) -> None:
+        if self.queue:
+            kind, data = self.queue.popleft()
+            (self.port.on_state if kind == "state" else self.plant.on_command)(data)
+
+
+def _wire(cfg, schedule, samples, drop=lambda i: False):
+    link = Link(drop)
+    log = ListLog()
+    plant = PlantProcess(cfg, schedule, link, log, samples=samples)
+    controller = ControllerProcess(cfg, log)
+    controller.record_trace(samples)
+    gains = []
+    out = Outputs(link.command, link.command, lambda b: None, lambda b: None, gains.append)
+    link.plant, link.port = plant, HasControlPort(controller, out, Conflicts(log))
+    return link, plant, controller, log, gains
+
+
+def test_lockstep_run_loop_is_the_library_run_bit_for_bit():
+    cfg, n = with_horizon(Config(), 1.5), 2000
+    link, plant, controller, log, gains = _wire(cfg, LockStep(timeout=60.0, startup_timeout=60.0), n)
+    plant.start()
+    stats = run_loop(plant, link.spin_once, plant.schedule)
+    assert plant.finished and plant.sample == n and stats.samples == n
+    np.testing.assert_array_equal(controller.trace, simulate(cfg).data[:n])
+    assert plant.fail_safe.samples == 0 and plant.conflicts.count == 0 and link.resent == 0
+    assert len(gains) == 1                                     # the gains in force, once, at sample 0
+
+
+def test_paced_run_holds_then_centres_the_valve_while_commands_are_lost_and_recovers():
+    cfg, n = Config(), 300
+    lost = range(100, 150)
+    link, plant, controller, log, _ = _wire(cfg, Paced(failsafe_samples=10), n, drop=lambda i: i in lost)
+    plant.log = []
+    plant.start()
+    stats = run_loop(plant, link.spin_once, plant.schedule)
+    u = np.array([row[-1] for row in plant.log])
+    assert plant.finished and len(u) == n
+    assert stats.missed >= len(lost) and set(lost) <= {i for a, b in stats.missed_spans for i in range(a, b + 1)}
+    assert np.all(u[lost.start + 11:lost.stop] == 0.0)           # past failsafe_samples misses: centred
+    assert u[lost.start] == u[lost.start - 1] or lost.start - 1 in stats.missed_at   # held first
+    assert plant.fail_safe.samples >= len(lost) - 10 and not plant.fail_safe.in_outage
+    warnings = [m for level, m in log.lines if level == "warning" and "valve centred" in m]
+    assert warnings and any("commands are back" in m for _, m in log.lines)
+
+
+def test_lockstep_watchdog_resends_then_centres_the_valve():
+    cfg = Config()
+    link, plant, *_ = _wire(cfg, LockStep(timeout=1.0, startup_timeout=2.0), 0)
+    plant.start()
+    link.queue.clear()
+    sched = plant.schedule
+    sched.tick(plant, plant.last_publish + 0.3)               # a quarter of the timeout: sent again
+    assert link.resent == 1 and plant.sample == 0
+    sched.tick(plant, plant.last_publish + 2.5)               # past the first answer's timeout: fail-safe
+    assert plant.sample == 1 and plant.fail_safe.samples == 1 and plant.fail_safe.in_outage
+
+
+def test_fail_safe_warns_once_per_outage():
+    log = ListLog()
+    fs = FailSafe(log)
+    assert [fs.centre(k, 10 + k) for k in range(1, 4)] == [0.0] * 3
+    fs.back(13)
+    fs.centre(1, 20)
+    assert fs.samples == 4 and [lv for lv, _ in log.lines] == ["warning", "info", "warning"]
+
+
+def test_conflicts_count_and_can_stop_the_run():
+    log = ListLog()
+    stopped = []
+    c = Conflicts(log, lambda: "2 publishers on /command", "conflicting commands")
+    c.seen("two different commands for sample 3")
+    c.stop, c.on_stop = True, lambda: stopped.append(1)
+    c.seen("two different commands for sample 4")
+    assert c.count == 2 and stopped == [1]
+    assert log.lines[0] == ("error", "two different commands for sample 3: 2 publishers on /command; "
+                                     "1 conflicting commands so far")
+
+
+def test_a_second_answer_to_a_sample_already_run_is_a_conflict():
+    cfg = Config()
+    link, plant, *_ = _wire(cfg, LockStep(60.0, 60.0), 0)
+    plant.start()
+    plant.on_command(COMMAND_LAYOUT.encode([1e-5], stamp_ns=0))            # sample 0 runs with it
+    assert plant.sample == 1 and plant.conflicts.count == 0
+    plant.on_command(COMMAND_LAYOUT.encode([2e-5], stamp_ns=0))            # another answer to sample 0
+    assert plant.conflicts.count == 1 and plant.sample == 1
+    ledger = AnswerLedger(kept=4)
+    ledger.ran(5, 1.0, answered=True)
+    assert ledger.differs(5, 2.0) and not ledger.differs(5, 1.0) and not ledger.differs(1, 2.0)
+
+
+def test_malformed_commands_never_reach_the_state():
+    cfg = Config()
+    link, plant, *_ = _wire(cfg, LockStep(60.0, 60.0), 0)
+    plant.start()
+    x0 = plant.x.copy()
+    for data in (b"", COMMAND_LAYOUT.encode([float("nan")], stamp_ns=0),
+                 COMMAND_LAYOUT.encode([1e-5], stamp_ns=7)):             # off the sample grid
+        plant.on_command(data)
+    assert plant.malformed_commands == 3 and plant.sample == 0 and np.array_equal(plant.x, x0)
+
+
+def _joint_state(x):
+    """x = (y, ẏ, P1, P2) as a ros2_control JointState, the joints out of the plant's order."""
+    return SimpleNamespace(name=["chamber_2", "actuator", "chamber_1"], position=[0.0, x[0], 0.0],
+                           velocity=[0.0, x[1], 0.0], effort=[x[3], 0.0, x[2]])
+
+
+def _encoded_states(cfg, rows):
+    """The has_control state messages of a trace's rows, sample by sample."""
+    ap = cfg.plant.as_array(cfg.actuator)
+    state, clock, scr = STATE_LAYOUT.buffer(), CLOCK_LAYOUT.buffer(), steps.scratch()
+    for i, row in enumerate(rows):
+        x = np.array([row[Col.y], row[Col.ydot], row[Col.P1], row[Col.P2], 0.0])
+        steps.encode_state(x, ap, i, cfg.episode.step_ns, state, clock, scr)
+        yield bytes(state), x
+
+
+def test_both_ports_answer_a_state_with_the_same_command():
+    """The library's states through either port: the library's commands."""
+    cfg, log = Config(), ListLog()
+    got = {"has_control": [], "ros2_control": []}
+    ports = {}
+    for name in got:
+        out = Outputs(got[name].append, got[name].append, lambda b: None, lambda b: None, lambda b: None)
+        ports[name] = make_port(name, ControllerProcess(cfg, log), out, Conflicts(log),
+                                mapping=parse_state_interfaces(DEFAULT_STATE_INTERFACES))
+    assert isinstance(ports["has_control"], HasControlPort) and isinstance(ports["ros2_control"], Ros2ControlPort)
+    ref = simulate(with_horizon(cfg, 1.5))
+    for data, x in _encoded_states(cfg, ref.data[:10]):
+        ports["has_control"].on_state(data)
+        ports["ros2_control"].on_state(_joint_state(x))
+    scr = steps.scratch()
+    u = [steps.command_of(c, cfg.episode.step_ns, scr)[1] for c in got["has_control"]]
+    assert u == list(ref.data[:10, Col.u])
+    assert got["ros2_control"] == [FORWARD_COMMAND_LAYOUT.encode([v]) for v in u]
+    assert ports["ros2_control"].next == 10
+
+
+def test_the_ros2_control_port_refuses_a_state_missing_a_joint():
+    cfg, log = Config(), ListLog()
+    sent = []
+    process = ControllerProcess(cfg, log)
+    port = Ros2ControlPort(process, Outputs(sent.append, sent.append, None, None, sent.append), Conflicts(log),
+                           parse_state_interfaces(DEFAULT_STATE_INTERFACES), "/joint_states", "/commands")
+    port.on_state(SimpleNamespace(name=["actuator"], position=[0.0], velocity=[0.0], effort=[0.0]))
+    assert process.malformed_states == 1 and not sent and port.next == 0
+    port.centre()
+    assert sent == [FORWARD_COMMAND_LAYOUT.encode([0.0])]
+
+
+def test_a_parameter_swap_waits_for_the_next_sample():
+    cfg, log = Config(), ListLog()
+    process = ControllerProcess(cfg, log)
+    gains = []
+    port = HasControlPort(process, Outputs(lambda b: None, lambda b: None, lambda b: None, lambda b: None,
+                                           gains.append), Conflicts(log))
+    port.on_state(next(_encoded_states(cfg, simulate(with_horizon(cfg, 1.5)).data[:1]))[0])
+    assert len(gains) == 1
+    new = replace(cfg, gains=replace(cfg.gains, k1=2 * cfg.gains.k1))
+    process.propose(new)
+    assert process.k == cfg.gains.as_tuple() and process.pending is not None
+    port.reset()
+    port.on_state(next(_encoded_states(cfg, simulate(with_horizon(cfg, 1.5)).data[:1]))[0])
+    assert process.k == new.gains.as_tuple() and process.pending is None and len(gains) == 2
+
+
+def test_schedule_of_each_mode():
+    assert isinstance(schedule_of("lockstep"), LockStep) and isinstance(schedule_of("realtime"), Paced)
