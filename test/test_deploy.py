@@ -41,7 +41,7 @@ def test_a_limit_cycling_deployment_falls_back_within_100_ms_and_costs_under_2x_
     onset = _onset(blind.trace, plan.settle)
     assert np.isfinite(onset) and blind.J > 10 * blind.safe_J          # unguarded, it does limit-cycle
     guarded = deploy_in_process(machine, plan)
-    assert guarded.tripped_at is not None and guarded.tripped_at <= onset + 0.1
+    assert guarded.tripped_at is not None and guarded.tripped_at < onset       # before the spool reaches its stop
     assert guarded.J <= 2.0 * guarded.safe_J
     assert all(f < t for f, t in zip(guarded.fallback, LIMIT_CYCLING))
 

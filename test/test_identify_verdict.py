@@ -129,3 +129,28 @@ def test_the_valve_experiment_reaches_the_valves_corner_safely():
     v = res.verdict
     assert v.band_hz >= 150.0 and v.valve_determined and v.adequate, v.line()
     assert res.estimates["valve_time_constant"].lower <= 8e-4 <= res.estimates["valve_time_constant"].upper
+
+
+def test_a_velocity_derived_from_position_is_judged_by_its_own_noise():
+    cfg = _cfg({"noise.velocity_source": "derived", "noise.velocity": 0.0})
+    tr = simulate(cfg)
+    exp = experiment_from_trace(tr, cfg)
+    y = exp.x[:, 0]
+    x = exp.x.copy()
+    x[1:, 1] = np.diff(y) / cfg.episode.step              # what the controller read: the backward difference
+    x[0, 1] = 0.0
+    v = identify([Experiment(exp.name, x, exp.u, cfg)]).verdict
+    assert v.derived_velocity and v.noise["ydot"] == pytest.approx(math.sqrt(2) * v.noise["y"] / cfg.episode.step)
+    assert not any(r.startswith("ydot residual not white") for r in v.reasons)
+
+
+def test_rows_without_a_measurement_do_not_set_the_noise_level():
+    rng = np.random.default_rng(1)
+    t = np.arange(20000) * 3e-4
+    x = (0.02 * np.sin(2 * np.pi * 3 * t) + rng.standard_normal(len(t)) * 1e-6)[:, None]
+    gaps = rng.choice(len(t), 200, replace=False)
+    held = x.copy()
+    for g in np.sort(gaps):
+        held[g] = held[g - 1]                               # a gap holds the previous sample
+    assert noise_levels(held, gaps)[0] == pytest.approx(1e-6, rel=0.05)
+    assert noise_levels(held)[0] > 1.2e-6                   # without the mask the holds inflate it

@@ -30,3 +30,11 @@ def test_a_bad_scale_is_one_line_naming_the_key(tmp_path):
     f.write_text("random: {count: 2, seed: 1, scale: {noise.seed: [0.5, 2]}}\n")
     with pytest.raises(ConfigError, match="scale.noise.seed"):
         load_scenarios(f)
+
+
+def test_scaled_friction_keeps_its_shape_and_a_lag_stays_at_least_a_step():
+    ident = build_config({"plant.valve_time_constant": 3e-4, "plant.friction_coulomb": 200.0,
+                          "plant.friction_stribeck": 200.0})
+    cfgs = [s.config(ident) for s in load_scenarios(CONFIG_DIR / "scenarios_machine.yaml", ident)[1:]]
+    assert all(c.plant.friction_stribeck == c.plant.friction_coulomb for c in cfgs)
+    assert all(c.plant.valve_time_constant >= ident.episode.step for c in cfgs)

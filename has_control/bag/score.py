@@ -37,9 +37,11 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
     States and commands are read by :func:`~has_control.bag.recorded.read_recording`
     (either layout, any epoch, jitter within its tolerance, repeats collapsed).
     The reference is ``…/controller/reference``, else recomputed from the
-    configuration (said in one line). Refused, one line: an incomplete bag
-    (truncated or damaged), a sample without its state or command (dropped:
-    the J of what is left would not be the run's), fewer samples than the
+    configuration (said in one line). Dropped states in runs of at most
+    MAX_INTERPOLATED samples are interpolated from their neighbours (said in
+    one line). Refused, one line: an incomplete bag (truncated or damaged), a
+    longer gap or a sample without its command (the J of what is left would
+    not be the run's), fewer samples than the
     configuration's horizon unless the run diverged."""
     if not bag.complete:
         raise BagError(f"{bag.path}: the bag is incomplete ({bag.damage_summary()}); "
@@ -50,7 +52,9 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
         raise BagError(f"{bag.path}: no messages on a command topic ('…/{COMMAND}' {JOINT_STATE}, or the "
                        f"ros2_control layout's {FLOAT64_ARRAY} commands); topics: {', '.join(sorted(bag.types))}")
     n = min(rec.samples, cfg.episode.samples, _through(rec.command))
-    for what, have in (("state", rec.state), ("command", rec.command)):
+    x = rec.x.copy()
+    filled = _interpolated(rec.state[:n], x[:n])
+    for what, have in (("state", rec.state if not filled else np.ones_like(rec.state)), ("command", rec.command)):
         lack = np.flatnonzero(~have[:n])
         if len(lack):
             topic = rec.state_topic if what == "state" else rec.command_topic
@@ -59,6 +63,9 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
                            "dropped samples is not scored (its J would not be the run's); plot shows it")
     for line in rec.notes:
         bag.on_warning(line)
+    if filled:
+        bag.on_warning(f"{bag.path}: {filled} of {n} samples without a state: each interpolated from its "
+                       f"neighbours (gaps of at most {MAX_INTERPOLATED} samples) to score the run")
     step = cfg.episode.step
     if has_topic(bag, REFERENCE, FLOAT64_ARRAY):
         rf = bag.find(REFERENCE, FLOAT64_ARRAY)
@@ -80,13 +87,34 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
         src = f"{PARAMETERS_KEY} of the bag" if PARAMETERS_KEY in bag.custom_data else "the configuration files"
         bag.on_warning(f"{bag.path}: no '…/{REFERENCE}' in the bag: the reference and the metrics recomputed "
                        f"from {src}" + (" and --config" if list(overrides) else ""))
-    y = rec.x[:n, 0]
+    y = x[:n, 0]
     bad = ~np.isfinite(y) | (np.abs(y) > cfg.episode.y_limit)
     diverged = bool(bad.any())
     if not diverged and n < cfg.episode.samples:
         raise BagError(f"{bag.path}: {n} of {cfg.episode.samples} samples recorded: the run is incomplete")
-    return RecordedRun(np.arange(n) * step, y, rec.x[:n, 1], rec.x[:n, 2], rec.x[:n, 3], rec.u[:n],
+    return RecordedRun(np.arange(n) * step, y, x[:n, 1], x[:n, 2], x[:n, 3], rec.u[:n],
                        x1d[:n], diverged, cfg)
+
+
+#: The longest run of dropped states a score interpolates over [samples] (0.9 ms at the reference step).
+MAX_INTERPOLATED = 3
+
+
+def _interpolated(have: np.ndarray, x: np.ndarray) -> int:
+    """Fill, in place, the rows of ``x`` whose state is missing (``~have``) by
+    linear interpolation between their neighbours, when every missing run is
+    at most MAX_INTERPOLATED samples long and inside the record; returns how
+    many (0: nothing filled, the caller refuses a dropped sample as before)."""
+    lack = np.flatnonzero(~have)
+    if len(lack) == 0 or lack[0] == 0 or lack[-1] == len(have) - 1:
+        return 0
+    runs = np.split(lack, np.flatnonzero(np.diff(lack) > 1) + 1)
+    if max(len(r) for r in runs) > MAX_INTERPOLATED:
+        return 0
+    idx = np.arange(len(have))
+    for c in range(x.shape[1]):
+        x[lack, c] = np.interp(lack, idx[have], x[have, c])
+    return int(len(lack))
 
 
 def _through(have: np.ndarray) -> int:

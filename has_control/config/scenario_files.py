@@ -20,7 +20,8 @@ a seeded random draw of N of them within stated ranges::
 ``scale`` draws relative to the configuration the scenarios are loaded over
 (``tune --config identified.yaml --scenarios ...``: the identified plant, its
 ``plant.*`` where set, else the model's ``actuator.*``), so one file serves any
-machine; the drawn values are stored as absolute overrides (a session resumes
+machine (the two friction forces share one factor; a lag is at least one
+step); the drawn values are stored as absolute overrides (a session resumes
 with the same ones).
 
 The robust cost over a scenario set is :mod:`has_control.core.scenarios`'.
@@ -195,6 +196,7 @@ def _draws(spec: Any, path: Path, base: Config | None = None) -> list[Scenario]:
             raise ConfigError(f"{where}.ranges.{key} = {shown(r)}: a seed's range is two whole numbers >= 0")
         bounds[key] = r
     rng = np.random.default_rng(seed)
+    step = (base or Config()).episode.step
     width = len(str(count - 1))
     out = []
     for i in range(count):
@@ -202,8 +204,16 @@ def _draws(spec: Any, path: Path, base: Config | None = None) -> list[Scenario]:
         for key, (lo, hi) in bounds.items():
             drawn[key] = int(rng.integers(lo, hi, endpoint=True)) if key in _INTEGER_KEYS else float(
                 rng.uniform(lo, hi))
+        drawn_factor = {}
         for key, (value, lo, hi) in factors.items():
-            drawn[key] = value * float(rng.uniform(lo, hi))
+            if key == "plant.friction_stribeck" and "plant.friction_coulomb" in drawn_factor:
+                f = drawn_factor["plant.friction_coulomb"]      # one factor: the friction law keeps its shape
+            else:
+                f = float(rng.uniform(lo, hi))
+            drawn_factor[key] = f
+            drawn[key] = value * f
+            if key == "plant.valve_time_constant" and 0.0 < drawn[key] < step:
+                drawn[key] = step                                # the plant takes 0 or at least one step
         out.append(Scenario(f"{prefix}-{i:0{width}d}", tuple(drawn.items())))
     return out
 

@@ -108,10 +108,11 @@ class DeploymentResult:
 
     @property
     def gap(self) -> float | None:
-        """Measured J of the deployed gains over the predicted one (when predicted)."""
+        """J of the tuned gains on the machine (a whole run on them, as the tuner scored
+        its prediction) over the predicted one (when predicted)."""
         if self.predicted_J is None or not self.predicted_J > 0.0:
             return None
-        return (self.J if self.tripped_at is None else self.tuned_J) / self.predicted_J
+        return self.tuned_J / self.predicted_J
 
     def lines(self) -> list[str]:
         out = [f"deployed in {self.plan.steps} steps of {self.plan.hold:g} s after {self.plan.settle:g} s on the safe "
@@ -192,6 +193,7 @@ def _guarded(schedule, switches, lim, ap, pp, cp, rp, sp, seed, ep, x0, trace, e
                 fallen = 2
             watchdog_reset(w)
             w[4] = 0.0
+            w[3] = -lim[7]            # judge the fallback gains only after a whole window of them
     e_max, e_mu, e_sigma = metric_finish(count, s[_MEAN, 0], s[_M2, 0], s[_PEAK, 0])
     return s[_J, 0], e_max, e_mu, e_sigma, n, False, step - 1 if fallen == 0 else -1
 

@@ -53,11 +53,13 @@ class WatchdogLimits:
     arm: float = 0.002
 
     def as_array(self, dt: float) -> np.ndarray:
-        """(α of the low-pass, α of the window, hf_rms, stop level, stop_share, e1_max, arming samples)."""
+        """(α of the low-pass, α of the window, hf_rms, stop level, stop_share, e1_max, arming samples,
+        the window's samples)."""
         low = 1.0 - math.exp(-2.0 * math.pi * self.corner * dt)
         win = 1.0 - math.exp(-dt / self.window)
         stop = 0.98 * self.valve_limit if self.valve_limit > 0.0 else math.inf
-        return np.array([low, win, self.hf_rms, stop, self.stop_share, self.e1_max, math.ceil(self.arm / dt)])
+        return np.array([low, win, self.hf_rms, stop, self.stop_share, self.e1_max, math.ceil(self.arm / dt),
+                         math.ceil(self.window / dt)])
 
     def check(self) -> None:
         for name in ("corner", "window", "hf_rms", "e1_max"):

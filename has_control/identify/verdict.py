@@ -34,6 +34,7 @@ model, 4–56, 0.35–0.97 and up to 0.41.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -54,6 +55,8 @@ HELD_OUT_FIT = 90.0
 BAND_SHARE = 0.99
 #: A valve corner above this multiple of the band is not determined by the data.
 VALVE_BAND_FACTOR = 2.0
+#: The band [Hz] an experiment must reach to say an ideal valve has no dynamics of interest.
+IDEAL_BAND_HZ = 100.0
 #: Share of the largest third differences left out of the noise estimate.
 TRIM = 1e-3
 
@@ -74,6 +77,9 @@ class Verdict:
     band_hz: float
     valve_corner_hz: float
     held_out: dict[str, float] = field(default_factory=dict)
+    #: ẏ is the backward difference of y (noise.velocity_source: derived): its noise is
+    #: √2·σ_y/Δt and not white (lag-1 autocorrelation −0.5), so its correlations are not tested.
+    derived_velocity: bool = False
 
     @property
     def reasons(self) -> list[str]:
@@ -99,7 +105,7 @@ class Verdict:
         below the noise level, a residual is rounding (an exact recording, whose
         "noise level" is the signal's own third differences), and its
         correlations say nothing."""
-        return [c for c in CHANNELS if not self.ratio[c] < NEGLIGIBLE]
+        return [c for c in CHANNELS if not self.ratio[c] < NEGLIGIBLE and not (c == "ydot" and self.derived_velocity)]
 
     @property
     def adequate(self) -> bool:
@@ -107,18 +113,27 @@ class Verdict:
 
     @property
     def valve_determined(self) -> bool:
+        """The band reaches half the valve's corner; for an ideal valve (no lag found), the band
+        reaches IDEAL_BAND_HZ (a valve faster than that is not told apart from an ideal one)."""
+        if math.isinf(self.valve_corner_hz):
+            return self.band_hz >= IDEAL_BAND_HZ
         return not self.valve_corner_hz > VALVE_BAND_FACTOR * self.band_hz
 
     def with_held_out(self, fit: dict[str, float]) -> "Verdict":
-        return Verdict(self.noise, self.ratio, self.autocorrelation, self.cross_correlation, self.band_hz,
-                       self.valve_corner_hz, dict(fit))
+        return dataclasses.replace(self, held_out=dict(fit))
 
     def line(self) -> str:
         """``model: adequate …`` or ``model: INADEQUATE (why)``, one line."""
         band = f"validated up to {self.band_hz:.3g} Hz"
-        valve = "" if self.valve_determined else (
-            f"; valve dynamics NOT DETERMINED (its corner {self.valve_corner_hz:.3g} Hz lies above "
-            f"{VALVE_BAND_FACTOR:g}x the band: record an experiment that reaches it, e.g. config/identify_valve.yaml)")
+        if math.isinf(self.valve_corner_hz):
+            valve = (f"; no valve lag seen up to {self.band_hz:.3g} Hz" if self.valve_determined else
+                     f"; valve dynamics NOT DETERMINED (no lag seen, but the band stops below {IDEAL_BAND_HZ:g} Hz: "
+                     "record an experiment that reaches it, e.g. config/identify_valve.yaml)")
+        else:
+            valve = "" if self.valve_determined else (
+                f"; valve dynamics NOT DETERMINED (its corner {self.valve_corner_hz:.3g} Hz lies above "
+                f"{VALVE_BAND_FACTOR:g}x the band: record an experiment that reaches it, e.g. "
+                "config/identify_valve.yaml)")
         if self.adequate:
             return f"model: adequate ({band}){valve}"
         why = self.reasons
@@ -137,10 +152,16 @@ class Verdict:
                                "valve_band_factor": VALVE_BAND_FACTOR}}
 
 
-def noise_levels(x: np.ndarray) -> np.ndarray:
+def noise_levels(x: np.ndarray, gaps=None) -> np.ndarray:
     """Each column's noise standard deviation [its unit] from its third
-    differences (variance 20·σ² for white noise), the largest TRIM share left out."""
+    differences (variance 20·σ² for white noise), the largest TRIM share left
+    out, and those that touch a row of ``gaps`` (rows without a measurement)."""
     d = np.abs(np.diff(np.asarray(x, dtype=np.float64), n=3, axis=0))
+    if gaps is not None and len(gaps) and len(d):
+        bad = np.zeros(len(x), dtype=bool)
+        bad[np.asarray(gaps)[np.asarray(gaps) < len(x)]] = True
+        touch = bad[:-3] | bad[1:-2] | bad[2:-1] | bad[3:]
+        d = d[~touch]
     if len(d) == 0:
         return np.full(x.shape[1], math.nan)
     keep = max(1, int(len(d) * (1.0 - TRIM)))
@@ -182,7 +203,10 @@ def band_hz(u: np.ndarray, step: float, share: float = BAND_SHARE) -> float:
 def verdict(experiments, residuals, starts, length: int, valve_corner_hz: float) -> Verdict:
     """The residual analysis of a fit: ``residuals[k]`` (segments, length + 1,
     4) [SI] of experiment k at the segments beginning at ``starts[k]``."""
-    noise = np.sqrt(np.mean([noise_levels(e.x) ** 2 for e in experiments], axis=0))
+    noise = np.sqrt(np.mean([noise_levels(e.x, getattr(e, "gaps", None)) ** 2 for e in experiments], axis=0))
+    derived = any(getattr(e.cfg.noise, "velocity_source", "measured") == "derived" for e in experiments)
+    if derived:
+        noise[1] = math.sqrt(2.0) * noise[0] / experiments[0].step    # the difference of two position readings
     res = np.concatenate(residuals) if residuals else np.zeros((0, length + 1, 4))
     rows = np.arange(length + 1)
     u = np.concatenate([e.u[s[:, None] + rows] for e, s in zip(experiments, starts)]) if residuals else \
@@ -194,7 +218,7 @@ def verdict(experiments, residuals, starts, length: int, valve_corner_hz: float)
     band = max(band_hz(e.u, e.step) for e in experiments)
     return Verdict(dict(zip(CHANNELS, map(float, noise))), dict(zip(CHANNELS, map(float, ratio))),
                    dict(zip(CHANNELS, map(float, ac))), dict(zip(CHANNELS, map(float, cc))), band,
-                   float(valve_corner_hz))
+                   float(valve_corner_hz), derived_velocity=derived)
 
 
 __all__ = ["Verdict", "verdict", "noise_levels", "correlations", "band_hz", "CHANNELS", "RESIDUAL_RATIO",
