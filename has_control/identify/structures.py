@@ -16,8 +16,8 @@ structures: hence the margin). The search is greedy, as forward selection
 is: the three valves without delay or friction first (a richer valve kept
 only if it lowers the BIC by BIC_MARGIN); then the chosen valve with a
 sample of delay and, separately, with friction, each kept if it lowers the
-BIC by BIC_MARGIN, and both together only if each did and the pair lowers
-it by BIC_MARGIN again. With a held-out
+BIC by BIC_MARGIN; when either did, both together, kept if the pair lowers
+it by BIC_MARGIN again (a delay can hide friction and the reverse). With a held-out
 run (``--validate``) the chosen structure is also the one whose held-out fit
 is not beaten by another's by more than HELD_OUT_MARGIN percentage points
 (else that one is chosen, and the reason says so). Every fitted candidate is
@@ -218,7 +218,7 @@ def select_structure(exps: list[Experiment], bounds: dict | None = None, toleran
     more = _parallel(lambda s: fit(s, tau), (dataclasses.replace(base.structure, delay=1),
                                              dataclasses.replace(base.structure, friction=True)))
     gains = [c for c in more if c.bic < base.bic - BIC_MARGIN]
-    if len(gains) == 2:
+    if gains:                                # the other extension on top of what helped (forward selection)
         both = fit(dataclasses.replace(base.structure, delay=1, friction=True), tau)
         if both.bic < min(c.bic for c in gains) - BIC_MARGIN:
             gains.append(both)
