@@ -75,7 +75,8 @@ class Hardware:
     sensor_msgs/JointState on /joint_states out, std_msgs/Float64MultiArray on
     /forward_command_controller/commands in. It steps the library's plant every
     0.3 ms; a command later than that is waited for (counted in ``late``), so
-    what is compared is the data, never the machine's timing."""
+    what is compared is the data, never the machine's timing. Its states are
+    stamped, as a controller manager stamps them, at the period's sample times."""
 
     def __init__(self, context, cfg):
         self.node = rclpy.create_node("hardware", context=context)
@@ -94,12 +95,13 @@ class Hardware:
         state, clock, scr = STATE_LAYOUT.buffer(), CLOCK_LAYOUT.buffer(), steps.scratch()
         ys, us = [], []
         t0 = time.perf_counter_ns()
+        epoch = time.time_ns()                   # stamps of the control period, from the wall clock's start
         for i in range(samples):
             due = t0 + i * step_ns
             while time.perf_counter_ns() < due:
                 pass
             ys.append(float(self.x[0]))
-            self.pub.publish(_joint_state(self.x, time.time_ns()))
+            self.pub.publish(_joint_state(self.x, epoch + i * step_ns))
             if not _spin_until(ex, lambda: len(self.commands) > i, 2.0 if i else 20.0):
                 raise AssertionError(f"no command for sample {i}")
             if time.perf_counter_ns() > due + step_ns:

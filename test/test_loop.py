@@ -219,3 +219,39 @@ def test_a_parameter_swap_waits_for_the_next_sample():
 
 def test_schedule_of_each_mode():
     assert isinstance(schedule_of("lockstep"), LockStep) and isinstance(schedule_of("realtime"), Paced)
+
+
+def _stamped(x, ns):
+    msg = _joint_state(x)
+    msg.header = SimpleNamespace(stamp=SimpleNamespace(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000))
+    return msg
+
+
+def test_the_ros2_control_port_keeps_time_from_the_stamps_across_drops_and_jitter():
+    """1 state in 50 dropped, stamps of a wall clock jittered by up to ±50 us: every answered
+    sample gets the library's command, the drops are counted, a stale state is not answered."""
+    cfg, log = Config(), ListLog()
+    got = []
+    out = Outputs(got.append, got.append, lambda b: None, lambda b: None, lambda b: None)
+    port = make_port("ros2_control", ControllerProcess(cfg, log), out, Conflicts(log),
+                     mapping=parse_state_interfaces(DEFAULT_STATE_INTERFACES))
+    ref = simulate(with_horizon(cfg, 1.5))
+    rng = np.random.default_rng(3)
+    epoch, step = 1_764_650_000 * 1_000_000_000, cfg.episode.step_ns
+    answered = []
+    for i, row in enumerate(ref.data):
+        if i % 50 == 49:
+            continue
+        x = (row[Col.y], row[Col.ydot], row[Col.P1], row[Col.P2])
+        port.on_state(_stamped(x, epoch + i * step + int(rng.integers(-50_000, 50_001))))
+        answered.append(i)
+    assert port.missing == sum(1 for i in range(answered[-1]) if i % 50 == 49) and port.stale == 0
+    first_drop = answered.index(50)
+    want = [FORWARD_COMMAND_LAYOUT.encode([ref.data[i, Col.u]]) for i in answered]
+    assert got[:first_drop] == want[:first_drop]                  # bit for bit up to the first drop
+    u = np.array([np.frombuffer(c[-8:], dtype="<f8")[0] for c in got])      # [u]: the message's last 8 bytes
+    # after it the estimates were held over each missing sample (their rate there is unknown):
+    # the same command to 1e-8 of the largest (measured 3.3e-9), where a sample off flipped its sign
+    assert np.abs(u - ref.data[answered, Col.u]).max() <= 1e-8 * np.abs(ref.data[:, Col.u]).max()
+    port.on_state(_stamped((ref.data[10, Col.y], 0.0, 4e6, 9e6), epoch + 10 * step))     # from the past
+    assert port.stale == 1 and len(got) == len(answered)

@@ -6,8 +6,16 @@
   (not shown to observers); a state that goes back in time is a conflict.
 * :class:`Ros2ControlPort`: a ``sensor_msgs/JointState`` (a message object, any
   joint order) read through ``state_interfaces`` (:mod:`has_control.wire.joint_mapping`),
-  answered as sample i = the number of states answered since the last reset,
-  with ``std_msgs/Float64MultiArray`` ``[u]`` on the command topic.
+  answered as the sample its header stamp names (the first state after a reset
+  is sample 0, the stamp rounded to the nearest sample: jitter of less than half
+  a step is absorbed), with ``std_msgs/Float64MultiArray`` ``[u]`` on the command
+  topic. A sample that never arrives (joint_state_broadcaster skips publishes) is
+  counted in ``missing``; a state stamped at or before the last one answered is
+  stale, counted in ``stale`` and not answered. Across a gap the estimates are
+  held (their rates at the missing samples are unknown; in the reference
+  configuration they sit on their projection bounds, so nothing changes) and
+  the reference is evaluated at the stamp. An unstamped state (stamp 0) is the
+  next sample, as before.
 
 Both drive one :class:`~has_control.loop.controller.ControllerProcess` and write
 through :class:`Outputs` (publish functions the node makes); both publish the
@@ -132,7 +140,21 @@ class Ros2ControlPort(_Port):
         super().__init__(process, out, conflicts)
 
     def reset(self) -> None:
-        self.next = 0                            # the sample the next state is
+        self.next = 0                            # the sample the next state is, if it is not stamped
+        self.t0_ns = None                        # the stamp of sample 0
+        self.missing = self.stale = 0
+
+    def _sample(self, msg) -> int:
+        """The sample a state is: from its header stamp (rounded to the grid from the
+        first state's), else the next one."""
+        header = getattr(msg, "header", None)
+        ns = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec) if header is not None else 0
+        if ns <= 0:
+            return self.next
+        step = self.process.step_ns
+        if self.t0_ns is None:
+            self.t0_ns = ns - self.next * step
+        return int(math.floor((ns - self.t0_ns) / step + 0.5))
 
     def on_state(self, msg) -> None:
         began = time.perf_counter_ns()
@@ -148,8 +170,12 @@ class Ros2ControlPort(_Port):
             x[k] = values[j]
         if not (math.isfinite(x[0]) and math.isfinite(x[1]) and math.isfinite(x[2]) and math.isfinite(x[3])):
             return p.refused("a non-finite value")
+        i = self._sample(msg)
+        if i < self.next:                        # stale: at or before the last sample answered
+            self.stale += 1
+            return None
+        self.missing += i - self.next
         p.take_pending()
-        i = self.next
         steps.encode_state(x, p.ap, i, p.step_ns, self._state, self._clock, self._scratch)
         p.answer(self._state)
         self.next = i + 1

@@ -51,8 +51,9 @@ P1 [Pa], P2 [Pa] (interface: position, velocity or effort; other joints in the
 message are ignored), and the valve command u [m] is written as
 ``std_msgs/Float64MultiArray`` ``[u]`` on ``command_topic`` (default
 ``/forward_command_controller/commands``, what a forward_command_controller
-takes). Each state that arrives is answered at once, as sample i = the number
-of states answered since activation (its time i·Δt); see docs/ros2_control.md.
+takes). Each state that arrives is answered at once, as the sample its header
+stamp names (from the first state's, rounded to the grid; missing and stale
+states counted in /diagnostics); see docs/ros2_control.md.
 
 ``/diagnostics`` (once a second, name "<node>: control law"): states
 answered, late (answers that took longer than one step Δt to compute),
@@ -268,7 +269,8 @@ class ControllerNode(LifecycleNode):
         in_bounds = p.estimates_in_bounds()
         values = {"lifecycle": state_label(self), "states_answered": p.states_answered, "late": p.late,
                   "malformed_states": p.malformed_states, "conflicts": self.conflicts,
-                  "a1_hat": f"{p.a1_hat:.6g}", "a2_hat": f"{p.a2_hat:.6g}", "estimates_in_bounds": in_bounds}
+                  "a1_hat": f"{p.a1_hat:.6g}", "a2_hat": f"{p.a2_hat:.6g}", "estimates_in_bounds": in_bounds,
+                  "states_missing": getattr(self.port, "missing", 0), "states_stale": getattr(self.port, "stale", 0)}
         message = (f"{state_label(self)}, {p.states_answered} answered, {p.late} late, "
                    f"{p.malformed_states} malformed" + ("" if in_bounds else ", estimates out of bounds"))
         publish_diagnostics(self, self.diagnostics_pub, "control law", "has_control controller",
