@@ -49,6 +49,24 @@ class Optimiser(Protocol):
     def result(self) -> "OptimiseResult": ...
 
 
+class BestSoFar:
+    """What every method answers the same way from its ``stop_reason``, ``gbest_x``
+    and ``gbest_f`` (the swarm's names, still read in saved sessions): ``done``,
+    ``best_x`` (the best gains so far) and ``best_f`` (their J)."""
+
+    @property
+    def done(self) -> bool:
+        return self.stop_reason is not None
+
+    @property
+    def best_x(self) -> np.ndarray:
+        return self.gbest_x
+
+    @property
+    def best_f(self) -> float:
+        return self.gbest_f
+
+
 class OptimiserError(HasControlError, ValueError):
     """Invalid method settings or bounds (one line naming the setting); ``key``
     is the setting at fault (``variant``, ``seed``, ``lower``, ...), or

@@ -37,7 +37,7 @@ import numpy as np
 
 from has_control.common.errors import shown
 from has_control.tuning.optimiser import (
-    IterationRecord, SwarmError, SwarmResult, check_bounds as _check_bounds, drive, record_dict, record_from,
+    BestSoFar, IterationRecord, SwarmError, SwarmResult, check_bounds as _check_bounds, drive, record_dict, record_from,
 )
 
 if TYPE_CHECKING:                    # pycma is imported where a search starts (see _search)
@@ -98,7 +98,7 @@ class RestartSettings:
         return self
 
 
-class Restarts:
+class Restarts(BestSoFar):
     """``cma-restarts`` driven by ask/tell (see the module's docstring)."""
 
     name = METHOD
@@ -206,19 +206,6 @@ class Restarts:
         return math.isfinite(low) and max(recent) - low <= s.tolerance * abs(low)
 
     # --- ask / tell -----------------------------------------------------------
-    @property
-    def done(self) -> bool:
-        return self.stop_reason is not None
-
-    @property
-    def best_x(self) -> np.ndarray:
-        """The best gains so far (``gbest_x``: the name shared with the swarm's, still read)."""
-        return self.gbest_x
-
-    @property
-    def best_f(self) -> float:
-        return self.gbest_f
-
     def progress(self) -> float:
         """Share of the budget spent, 0 .. 1."""
         return 1.0 if self.done else min(1.0, self.evaluations / self.settings.evaluations)

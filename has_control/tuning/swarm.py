@@ -25,8 +25,8 @@ import numpy as np
 from has_control.common.errors import shown
 from has_control.common.json_numbers import list_to_json
 from has_control.tuning.optimiser import (  # noqa: F401  (re-exported: the old home of these names)
-    IterationRecord, OptimiseResult, SwarmError, SwarmResult, _from_json, check_bounds as _check_bounds, drive,
-    record_dict, record_from,
+    BestSoFar, IterationRecord, OptimiseResult, SwarmError, SwarmResult, _from_json, check_bounds as _check_bounds,
+    drive, record_dict, record_from,
 )
 
 
@@ -113,7 +113,7 @@ class SwarmSettings:
         return self
 
 
-class Swarm:
+class Swarm(BestSoFar):
     """A particle swarm driven by ask/tell (SPEC §7)."""
 
     def __init__(self, bounds, settings: SwarmSettings | None = None, seed: int | None = None):
@@ -140,19 +140,6 @@ class Swarm:
     def name(self) -> str:
         """The method's name (a key of :data:`VARIANTS`)."""
         return self.settings.variant
-
-    @property
-    def done(self) -> bool:
-        return self.stop_reason is not None
-
-    @property
-    def best_x(self) -> np.ndarray:
-        """The best position so far (``gbest_x``, the swarm's own name)."""
-        return self.gbest_x
-
-    @property
-    def best_f(self) -> float:
-        return self.gbest_f
 
     def progress(self) -> float:
         """Share of the iterations done, 0 .. 1."""
