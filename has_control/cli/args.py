@@ -12,6 +12,7 @@ from has_control.common.errors import HasControlError
 from has_control.common.files import check_output
 from has_control.config import check_gain, finite_number, load_config, with_horizon
 from has_control.core.params import Config
+from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, DEFAULT_STATE_INTERFACES
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -138,6 +139,23 @@ def check_apart(args, outputs=(), inputs=()) -> None:
 
 def _flag(name: str) -> str:
     return "BAG" if name == "bags" else f"--{name}"
+
+
+def add_reading(p) -> None:
+    """``--state-interfaces`` and ``--command-topic``: how a ros2_control layout bag is read."""
+    p.add_argument("--state-interfaces", nargs=4, metavar=("Y", "YDOT", "P1", "P2"),
+                   help="joint/interface of y, y_dot, P1, P2 in /joint_states (ros2_control layout; default: "
+                        + " ".join(DEFAULT_STATE_INTERFACES) + ")")
+    p.add_argument("--command-topic", metavar="TOPIC",
+                   help="the valve command topic (default: .../command, else " + DEFAULT_COMMAND_TOPIC + ")")
+
+
+def reading_of(args):
+    """The :class:`~has_control.bag.recorded.Reading` that ``--state-interfaces`` and ``--command-topic`` ask for."""
+    # lazy: the bag reader; only the commands that read a recording need it
+    from has_control.bag.recorded import Reading
+    si = getattr(args, "state_interfaces", None)
+    return Reading(tuple(si) if si else None, getattr(args, "command_topic", None))
 
 
 def figure_path(text: str) -> str:

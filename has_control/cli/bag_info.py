@@ -2,9 +2,10 @@
 how its recorded samples read (layout, grid, drops, repeats)."""
 from __future__ import annotations
 
+from has_control.cli.args import add_reading, reading_of
+
 from has_control.bag import PARAMETERS_KEY, describe, read_bag
 from has_control.bag.recorded import read_recording
-from has_control.cli.score import add_reading, reading_of
 from has_control.common.errors import HasControlError
 
 HELP = "topics, types, counts and duration of a bag"

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import json
 
-from has_control.cli.args import add_config, add_json, check_outputs, gains_arg, load, number
+from has_control.cli.args import add_config, add_json, check_outputs, gains_arg, number
+from has_control.config import load_config
 from has_control.common.errors import HasControlError
 
 HELP = "deploy tuned gains in steps under a watchdog that falls back to the safe gains"
@@ -37,7 +38,7 @@ def run(args) -> int:
     from has_control.deploy.guarded import DeploymentPlan, deploy_in_process
     from has_control.deploy.watchdog import WatchdogLimits
     check_outputs(args, directories=("record",))
-    cfg = load(argparse_duration(args))
+    cfg = load_config(args.config or [])
     plan = DeploymentPlan(gains_arg(args.safe, "--safe"), gains_arg(args.gains), args.steps, args.settle, args.hold)
     limits = WatchdogLimits(hf_rms=args.hf_rms, stop_share=args.stop_share, e1_max=args.e1_max,
                             valve_limit=cfg.plant.valve_limit)
@@ -54,11 +55,6 @@ def run(args) -> int:
         if args.record:
             print(f"wrote {args.record}")
     return 0
-
-
-def argparse_duration(args):
-    args.duration = None
-    return args
 
 
 def _record(directory, res, cfg) -> None:

@@ -6,8 +6,7 @@ import argparse
 import json
 import math
 
-from has_control.cli.args import add_config, add_json, check_apart, check_outputs, figure_path
-from has_control.cli.score import add_reading, reading_of
+from has_control.cli.args import add_config, add_json, add_reading, check_apart, check_outputs, figure_path, reading_of
 from has_control.common.errors import HasControlError
 
 

@@ -11,8 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from has_control.cli.args import figure_path, number
-from has_control.cli.score import add_reading, reading_of
+from has_control.cli.args import add_reading, figure_path, number, reading_of
 from has_control.common.errors import HasControlError
 from has_control.common.files import check_output
 

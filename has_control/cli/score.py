@@ -4,25 +4,9 @@ from __future__ import annotations
 import json
 
 from has_control.bag import score_bag
-from has_control.bag.recorded import Reading
-from has_control.cli.args import add_config, add_json
-from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, DEFAULT_STATE_INTERFACES
+from has_control.cli.args import add_config, add_json, add_reading, reading_of
 
 HELP = "score a recorded run (J, e_max, e_mu, e_sigma) from its bag"
-
-
-def add_reading(p) -> None:
-    """``--state-interfaces`` and ``--command-topic``: how a ros2_control layout bag is read."""
-    p.add_argument("--state-interfaces", nargs=4, metavar=("Y", "YDOT", "P1", "P2"),
-                   help="joint/interface of y, y_dot, P1, P2 in /joint_states (ros2_control layout; default: "
-                        + " ".join(DEFAULT_STATE_INTERFACES) + ")")
-    p.add_argument("--command-topic", metavar="TOPIC",
-                   help="the valve command topic (default: .../command, else " + DEFAULT_COMMAND_TOPIC + ")")
-
-
-def reading_of(args) -> Reading:
-    si = getattr(args, "state_interfaces", None)
-    return Reading(tuple(si) if si else None, getattr(args, "command_topic", None))
 
 
 def add_arguments(p) -> None:
