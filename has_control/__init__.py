@@ -14,8 +14,8 @@ from pathlib import Path
 #: Modules whose compiled functions call one another (params holds the index
 #: constants the kernels bake in).
 COMPILED_MODULES = ("core.jit", "core.params", "core.actuator", "core.road", "core.reference",
-                    "core.abc_controller", "core.cost", "core.noise", "core.episode", "wire.cdr", "wire.codec",
-                    "wire.topics", "wire.steps")
+                    "core.abc_controller", "core.cost", "core.measures", "core.noise", "core.episode", "wire.cdr",
+                    "wire.codec", "wire.topics", "wire.steps")
 
 
 def _cache_key() -> str:

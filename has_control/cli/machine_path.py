@@ -78,13 +78,14 @@ def machine_path(out: Path, evaluations: int = 2000, seed: int = 1) -> dict:
                   for m in (old_model, new_model)]
     print(f"3. tune (cma-restarts, {evaluations} evaluations) on each identified model, and on the machine "
           "itself (its best gains with the same controller, for reference) ...", flush=True)
-    rows = []
+    rows, notes = [], []
     for label, model, deployed in (("the old identification (first-order)", old_model, on_machine[0]),
                                    ("the structure-selected identification", new_model, on_machine[1]),
                                    ("the machine itself (best)", on_machine[1], on_machine[1])):
         r = tune(model, tuning, diagnostics=False)
         j_machine = float(evaluate(np.array([r.gains]), deployed)[0])
         rows.append((label, r.gains, float(r.result.fun), j_machine))
+        notes.extend(f"   {label}: {line}" for line in r.lines() if "VOUCHED" in line or line.startswith("vouched"))
     machine = on_machine[1]
     j_manual = float(evaluate(np.array([MANUAL_GAINS.as_tuple()]), machine)[0])
     best = rows[-1][3]
@@ -94,6 +95,8 @@ def machine_path(out: Path, evaluations: int = 2000, seed: int = 1) -> dict:
           f"{j_manual / best:8.3g}")
     for label, g, jp, jm in rows:
         print(f"   {label:<40} {g[0]:8.2f} {g[1]:8.2f} {g[2]:8.2f} {jp:12.4e} {jm:13.4e} {jm / best:8.3g}")
+    for line in notes:
+        print(line)
     chosen = rows[1]
     print("4. guarded deployment of the structure-selected gains on the machine (4 steps of 1 s) ...", flush=True)
     dep = deploy_in_process(machine, DeploymentPlan(MANUAL_GAINS.as_tuple(), chosen[1]), predicted_J=chosen[2])

@@ -12,6 +12,7 @@ from has_control.cli.status import Progress
 from has_control.common.errors import HasControlError
 from has_control.tuning.session import SESSION, run_session
 from has_control.tuning.methods import METHODS, is_swarm
+from has_control.tuning.requirements import load_requirements
 from has_control.tuning.tuner import load_tuning, robust_tuning
 
 HELP = "tune k1, k2, k3 (cma-restarts, or the paper's particle swarms)"
@@ -34,6 +35,9 @@ def add_arguments(p) -> None:
     p.add_argument("--scenarios", metavar="FILE",
                    help="robust tuning: score each candidate on every scenario of this YAML file")
     p.add_argument("--aggregate", metavar="HOW", help="with --scenarios: mean (default), max or cvar:ALPHA")
+    p.add_argument("--requirements", metavar="FILE",
+                   help="a machine's requirements (requirements.*: spool travel, e_max, pressures, command "
+                        "above a frequency) as the cost instead of the paper's J (config/requirements_machine.yaml)")
     p.add_argument("--dask", type=dask_spec, metavar="SPEC",
                    help="evaluate on a Dask cluster: local:N (N local workers) or tcp://HOST:PORT (a scheduler)")
     p.add_argument("--force", action="store_true", help="with --out: replace the session and tune.json already in DIR")
@@ -81,12 +85,17 @@ def run(args) -> int:
     if args.resume:
         if args.out and Path(args.out) != Path(args.resume):
             raise HasControlError(f"--out {args.out}: a resumed session writes to its own directory {args.resume}")
-        if args.scenarios is not None or args.aggregate is not None:
-            raise HasControlError("--scenarios/--aggregate: a resumed session scores on its own scenarios")
+        if args.scenarios is not None or args.aggregate is not None or args.requirements is not None:
+            raise HasControlError("--scenarios/--aggregate/--requirements: a resumed session scores on its own "
+                                  "scenarios and requirements")
         cfg = tuning = None
     else:
         cfg = load(args)
         tuning = robust_tuning(tuning_args(args), cfg, args.scenarios, args.aggregate)
+        if args.requirements is not None:
+            if args.dask:
+                raise HasControlError(f"--requirements {args.requirements}: scored in process only, not with --dask")
+            tuning = tuning.replace(requirements=load_requirements(args.requirements))
     progress = Progress()
     try:
         with batch(args) as evaluator:
@@ -102,10 +111,13 @@ def run(args) -> int:
     else:
         k = res.gains
         over = f" ({res.aggregate} over {res.scenarios} scenarios)" if res.scenarios else ""
+        name = "J_req" if res.answer is not None and "requirements" in res.answer else "J"
         print(f"{res.variant}, seed {res.seed}: k = ({k[0]:.2f}, {k[1]:.2f}, {k[2]:.2f}), "
-              f"J = {res.result.fun:.6e}{over} after {res.result.nit} iterations, "
+              f"{name} = {res.result.fun:.6e}{over} after {res.result.nit} iterations, "
               f"{res.result.nfev} evaluations, {res.seconds:.1f} s ({res.result.message})")
         for line in res.bounds.lines() if res.bounds is not None else ():
+            print(line)
+        for line in res.lines():
             print(line)
         if session.directory:
             print(f"wrote {session.directory / 'tune.json'}, gains.yaml (a --params-file for the controller), "

@@ -139,6 +139,7 @@ _register("plant", "plant", {
     "delay": ("int", _int_range(0, DELAY_MAX)), "substeps": ("int", _int_range(1, SUBSTEPS_MAX)),
     "friction_coulomb": ("float", _non_negative), "friction_stribeck": ("float", _non_negative),
     "stribeck_velocity": ("float", _positive), "friction_smoothing": ("float", _positive),
+    "validated_band": ("float", _non_negative),
 })
 _register("noise", "noise", {
     "position": ("float", _non_negative), "velocity": ("float", _non_negative),

@@ -30,6 +30,10 @@ from has_control.core.abc_controller import abc_law, adapt
 from has_control.core.actuator import diverged, spool_plant_step, valve_plant_step
 from has_control.core.cost import Score, cost_increment, metric_finish, metric_update
 from has_control.core.jit import INLINE, KERNEL, LEAF
+from has_control.core.measures import (
+    HF_CORNER, MEASURE_STATE, MEASURES, NO_MEASURES, measure_command, measure_finish, measure_parameters,
+    measure_start, measure_state, score_measures,
+)
 from has_control.core.noise import measurement_noise, noise_on, sensor_readings, sensors_on
 from has_control.core.params import (
     A1_INIT, A2_INIT, DELAY, DELAY_RING, DT, N_ACTUATOR, N_CONTROLLER, N_EPISODE, N_PLANT, N_SAMPLES, N_SENSOR,
@@ -317,15 +321,23 @@ def _lanes(s, has_prev, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window,
 
 @njit(**INLINE)
 def _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp, cp, sp, ep, dt, y_limit,
-                   mark):
+                   mark, measure, m, mp):
     """:func:`_lanes` through :func:`general_sample_step`, the delay's ring
-    read before the lane loop and written after it."""
+    read before the lane loop and written after it; with ``measure`` the
+    lanes' :mod:`~has_control.core.measures` in ``m`` (parameters ``mp``),
+    in loops of their own around it."""
     _ring_read(s, i, pp)
+    if measure:
+        for q in range(LANES):
+            measure_state(m, q, r0 - s[_X1, q], s[_X3, q], s[_X4, q])
     for q in range(LANES):
         bad, _, _, _, _ = general_sample_step(s, q, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window,
                                               ap, pp, cp, sp, ep, dt, y_limit)
         dead = s[_DEAD, q]
         s[_DEAD, q] = dead if dead > 0.0 else (mark if bad else 0.0)
+    if measure:
+        for q in range(LANES):
+            measure_command(m, q, s[_U, q], in_window, mp, ep)
     _ring_write(s, i)
 
 
@@ -419,13 +431,21 @@ def _block(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
 
 
 @njit(**KERNEL)
-def _block_general(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
+def _block_general(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, mp, out):
     """:func:`_block` for a plant or sensors beyond the reference structure,
     through :func:`general_sample_step`: the structure (spool or full) is
     made a constant in each copy of the lane loop (and the ẋ3d mode in the
     spool structure's two), so a copy compiles the options it has not away:
-    a second-order spool with a delay runs as fast as the reference plant."""
+    a second-order spool with a delay runs as fast as the reference plant.
+
+    ``mp`` (:func:`~has_control.core.measures.measure_parameters`, or
+    NO_MEASURES): with mp[0] = 1 columns 6.. of ``out`` get the MEASURES of
+    each lane's run (``out`` then has 6 + len(MEASURES) columns)."""
     ap, pp, cp, sp, noisy, ep, dt, n, lo, hi, y_limit = _constants(ap, pp, cp, sp, ep)
+    measure = mp[0] != 0.0
+    m = np.zeros((MEASURE_STATE, LANES))
+    for q in range(LANES):
+        measure_start(m, q)
     backward = int(cp[X3D_MODE]) == X3D_BACKWARD
     cp_analytic = tuple_setitem(cp, X3D_MODE, float(X3D_ANALYTIC))
     cp_backward = tuple_setitem(cp, X3D_MODE, float(X3D_BACKWARD))
@@ -450,17 +470,25 @@ def _block_general(gains, first, last, ap, pp, cp, rp, sp, seed, ep, x0, out):
             r0, r1, r2, r3 = ref[j, 0], ref[j, 1], ref[j, 2], ref[j, 3]
             if full:
                 _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_full,
-                               cp, sp, ep, dt, y_limit, i + 1.0)
+                               cp, sp, ep, dt, y_limit, i + 1.0, measure, m, mp)
             elif backward:
                 _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_spool,
-                               cp_backward, sp, ep, dt, y_limit, i + 1.0)
+                               cp_backward, sp, ep, dt, y_limit, i + 1.0, measure, m, mp)
             else:
                 _lanes_general(s, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, in_window, ap, pp_spool,
-                               cp_analytic, sp, ep, dt, y_limit, i + 1.0)
+                               cp_analytic, sp, ep, dt, y_limit, i + 1.0, measure, m, mp)
             alive = _alive(s)
             if alive == 0:
                 break
     _block_finish(s, first, last, count, n, out)
+    if measure:
+        for q in range(min(last - first, LANES)):
+            p = first + q
+            if s[_DEAD, q] > 0.0:
+                for c in range(6, out.shape[1]):
+                    out[p, c] = math.inf
+            else:
+                measure_finish(m, q, count, n, out[p], 6)
 
 
 def threads() -> int:
@@ -494,11 +522,13 @@ def _pool(workers: int):
         return pool
 
 
-def _run_blocks(gains, arrays: "list[EpisodeArrays]", outs, workers: int | None = None) -> None:
+def _run_blocks(gains, arrays: "list[EpisodeArrays]", outs, workers: int | None = None, mps=None) -> None:
     """Every block of ``gains`` under every ``arrays[s]`` (into ``outs[s]``) on
     ``workers`` threads (default :func:`threads`). ``_block`` releases the GIL,
     so Python threads run blocks in parallel; each block writes its own rows of
-    its own ``out``, so the result does not depend on the schedule."""
+    its own ``out``, so the result does not depend on the schedule. With
+    ``mps`` (measure parameters, one per array) every block runs
+    ``_block_general``, which measures (``outs[s]`` then has the measures' columns)."""
     if gains.shape[0] == 0 or not arrays:
         return
     workers = workers or threads()
@@ -507,8 +537,11 @@ def _run_blocks(gains, arrays: "list[EpisodeArrays]", outs, workers: int | None 
 
     def run(task):
         s, b = task
-        kernel = _block if arrays[s].structure() == STRUCTURE_REFERENCE else _block_general
-        kernel(gains, edges[b], edges[b + 1], *arrays[s].kernel_args(), outs[s])
+        if mps is None and arrays[s].structure() == STRUCTURE_REFERENCE:
+            _block(gains, edges[b], edges[b + 1], *arrays[s].kernel_args(), outs[s])
+        else:
+            _block_general(gains, edges[b], edges[b + 1], *arrays[s].kernel_args(),
+                           NO_MEASURES if mps is None else mps[s], outs[s])
     if workers == 1 or len(tasks) == 1:
         for task in tasks:
             run(task)
@@ -622,6 +655,34 @@ def evaluate_configs(gains, cfgs, workers: int | None = None) -> np.ndarray:
     return res
 
 
+def evaluate_measured(gains, cfgs, corner: float = HF_CORNER, workers: int | None = None) -> np.ndarray:
+    """:func:`evaluate_configs` with each run's
+    :data:`~has_control.core.measures.MEASURES` after its (J, e_max, e_μ,
+    e_σ): the (P, S, 4 + len(MEASURES)) array; ``corner`` [Hz]: the high-pass
+    corner of ``hf_rms``. Every run goes through the general kernel, whose
+    J is the reference kernel's to the bit where the options are off."""
+    k = _gains_array(gains)
+    check_road_memory([(c.reference, c.episode) for c in cfgs])
+    arrays = [EpisodeArrays.from_config(c) for c in cfgs]
+    outs = [np.empty((k.shape[0], 6 + len(MEASURES))) for _ in arrays]
+    _run_blocks(k, arrays, outs, workers,
+                [measure_parameters(c.plant.valve_limit, corner, c.episode.step) for c in cfgs])
+    res = np.empty((k.shape[0], len(arrays), 4 + len(MEASURES)))
+    for s, out in enumerate(outs):
+        res[:, s, :4] = out[:, :4]
+        res[:, s, 4:] = out[:, 6:]
+    return res
+
+
+def series_measures(trace: "Trace", cfg: Config, corner: float = HF_CORNER) -> dict:
+    """The MEASURES of a simulated run, by name (as :func:`evaluate_measured` measures it)."""
+    out = np.empty(len(MEASURES))
+    score_measures(np.ascontiguousarray(trace["u"]), np.ascontiguousarray(trace["e1"]),
+                   np.ascontiguousarray(trace["P1"]), np.ascontiguousarray(trace["P2"]),
+                   measure_parameters(cfg.plant.valve_limit, corner, cfg.episode.step), cfg.episode.as_array(), out)
+    return dict(zip(MEASURES, (float(v) for v in out)))
+
+
 def _as_gains(g) -> Gains:
     if isinstance(g, Gains):
         return g
@@ -629,4 +690,5 @@ def _as_gains(g) -> Gains:
     return Gains(k1, k2, k3)
 
 
-__all__ = ["Col", "TRACE_COLUMNS", "TRACE_UNITS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs"]
+__all__ = ["Col", "TRACE_COLUMNS", "TRACE_UNITS", "EpisodeArrays", "Trace", "simulate", "evaluate", "evaluate_configs",
+           "evaluate_measured", "series_measures"]

@@ -137,7 +137,10 @@ class Plant:
     Fc [N], friction_stribeck Fs [N] (breakaway force), stribeck_velocity
     v_s [m/s], friction_smoothing ε [m/s]: F = (Fc + (Fs − Fc)·e^(−(ẏ/v_s)²))
     ·ẏ/√(ẏ² + ε²) against the motion. substeps: RK4 steps a sample (the
-    command held). The defaults are the reference configuration: the plant
+    command held). validated_band [Hz]: the band up to which identification
+    validated this plant as a model of a machine (0: not stated); no physics
+    reads it: ``tune`` vouches for its answer against what may lie above it
+    (:mod:`has_control.tuning.vouch`). The defaults are the reference configuration: the plant
     is the model, the valve ideal (docs/model.md).
     """
 
@@ -157,6 +160,7 @@ class Plant:
     stribeck_velocity: float = 0.01
     friction_smoothing: float = 1.0e-4
     substeps: int = 1
+    validated_band: float = 0.0
 
     def has_friction(self) -> bool:
         return self.friction_coulomb != 0.0 or self.friction_stribeck != 0.0

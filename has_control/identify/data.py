@@ -25,7 +25,7 @@ from has_control.bag.read import read_bag
 from has_control.bag.recorded import Reading, layout_of, read_recording
 from has_control.common.errors import HasControlError
 from has_control.core.jit import KERNEL
-from has_control.core.noise import measurement_noise
+from has_control.core.noise import measurement_noise, noise_on, sensor_readings
 from has_control.core.params import Config, Noise
 from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC
 from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE
@@ -123,29 +123,36 @@ def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
 
 
 @njit(**KERNEL)
-def _noise_table(sp, seed, first, n, out):
-    for i in range(n):
-        n1, n2, n3, n4 = measurement_noise(sp, seed, first + i)
-        out[i, 0] = n1
-        out[i, 1] = n2
-        out[i, 2] = n3
-        out[i, 3] = n4
+def _readings(x, sp, seed, first, dt, out):
+    """Row i of ``out``: :func:`~has_control.core.noise.sensor_readings` of
+    row i of ``x`` at sample first + i, as the controller reads it."""
+    noisy = noise_on(sp)
+    y_prev = v_prev = 0.0
+    for i in range(x.shape[0]):
+        n1, n2, n3, n4 = measurement_noise(sp, seed, first + i) if noisy else (0.0, 0.0, 0.0, 0.0)
+        m1, m2, m3, m4 = sensor_readings(x[i, 0], x[i, 1], x[i, 2], x[i, 3], n1, n2, n3, n4, noisy, sp,
+                                         y_prev, v_prev, first + i > 0, dt)
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = m1, m2, m3, m4
+        y_prev, v_prev = m1, m2
 
 
-def measured(x: np.ndarray, noise: Noise, first: int = 0) -> np.ndarray:
-    """States ``x`` (n, 4) as sensors with ``noise`` read them: plus the core's
-    seeded noise of samples first .. first + n − 1, the values the controller
-    reads (:func:`has_control.core.noise.measurement_noise`)."""
-    table = np.zeros((len(x), 4))
-    sp = noise.as_array()
-    if sp.any():
-        _noise_table(sp, int(noise.seed), first, len(x), table)
-    return np.asarray(x, dtype=np.float64) + table
+def measured(x: np.ndarray, noise: Noise, first: int = 0, step: float = 3.0e-4) -> np.ndarray:
+    """States ``x`` (n, 4) as sensors with ``noise`` read them at sample step
+    ``step`` [s]: plus the core's seeded noise of samples first .. first + n − 1,
+    quantised and with a derived velocity as the sensors say: the values the
+    controller reads (:func:`has_control.core.noise.sensor_readings`)."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    sp = noise.as_array(step)
+    if not sp.any():
+        return x.copy()
+    out = np.empty_like(x)
+    _readings(x, sp, int(noise.seed), int(first), float(step), out)
+    return out
 
 
 def experiment_from_trace(trace, cfg: Config, noise: Noise | None = None, name: str = "simulated") -> Experiment:
     """An experiment from a core trace (:func:`has_control.core.episode.simulate`):
     its true states read through ``noise`` (default ``cfg.noise``), and its commands."""
     x = np.column_stack([trace["y"], trace["ydot"], trace["P1"], trace["P2"]])
-    xm = measured(x, cfg.noise if noise is None else noise)
+    xm = measured(x, cfg.noise if noise is None else noise, step=cfg.episode.step)
     return Experiment(name, np.ascontiguousarray(xm), np.ascontiguousarray(trace["u"]), cfg)

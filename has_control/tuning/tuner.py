@@ -19,13 +19,16 @@ from has_control.config import (
     SEED_RANGE, Scenario, check_gain, check_scenarios, default_config_files, finite_number, is_seed,
     load_scenarios, read_parameter_files, scenario_configs, scenarios_from_json,
 )
-from has_control.core.episode import evaluate_configs
+from has_control.core.episode import evaluate_configs, evaluate_measured
+from has_control.core.measures import MEASURES
 from has_control.common.errors import ConfigError, shown
 from has_control.core.params import Config
 from has_control.core.scenarios import Aggregate, parse_aggregate
 from has_control.tuning.bounds import BoundDiagnostics, diagnose
 from has_control.tuning.methods import DEFAULT, check_method, drive, is_swarm, new_optimiser
+from has_control.tuning.requirements import Requirements, report_lines, requirements_from_json
 from has_control.tuning.restarts import RestartSettings
+from has_control.tuning.vouch import unseen_variants, vouch_line, vouch_report, vouched_cost
 from has_control.tuning.optimiser import OptimiseResult, SwarmError
 from has_control.tuning.swarm import Swarm, SwarmSettings
 from has_control.common.json_numbers import to_json
@@ -38,7 +41,9 @@ class Tuning:
     """A tuning session's settings: the method (``swarm.variant``), the swarm's
     and ``cma-restarts``' settings, the search box and the seed, and what a
     candidate is scored on: the nominal episode, or (robust tuning) the
-    ``aggregate`` of its costs over ``scenarios``."""
+    ``aggregate`` of its costs over ``scenarios``; with ``requirements`` a
+    machine's cost (:mod:`~has_control.tuning.requirements`) in place of
+    the paper's J."""
 
     swarm: SwarmSettings = SwarmSettings(variant=DEFAULT)
     lower: tuple[float, float, float] = (150.0, 150.0, 150.0)
@@ -47,6 +52,7 @@ class Tuning:
     scenarios: tuple[Scenario, ...] = ()
     aggregate: Aggregate = Aggregate()
     restarts: RestartSettings = RestartSettings()
+    requirements: Requirements | None = None
 
     @property
     def method(self) -> str:
@@ -59,7 +65,8 @@ class Tuning:
     def replace(self, **changes) -> "Tuning":
         """Override seed, lower, upper, any SwarmSettings field (``variant``: the
         method) or RestartSettings field; validated."""
-        top = {k: changes.pop(k) for k in ("seed", "lower", "upper", "scenarios", "aggregate") if k in changes}
+        top = {k: changes.pop(k) for k in ("seed", "lower", "upper", "scenarios", "aggregate", "requirements")
+               if k in changes}
         restart = {k: changes.pop(k) for k in _RESTART_FIELDS if k in changes}
         t = dataclasses.replace(self, swarm=dataclasses.replace(self.swarm, **changes),
                                 restarts=dataclasses.replace(self.restarts, **restart), **top)
@@ -147,6 +154,8 @@ def tuning_json(t: Tuning) -> dict:
          "lower": list(t.lower), "upper": list(t.upper), "seed": t.seed}
     if t.scenarios:
         d.update(scenarios=[s.as_json() for s in t.scenarios], aggregate=str(t.aggregate))
+    if t.requirements is not None:
+        d["requirements"] = t.requirements.as_json()
     return d
 
 
@@ -160,7 +169,7 @@ def tuning_from_json(d: dict, where: str = "tuning settings", cfg: Config | None
     if (not isinstance(d, dict) or not keys <= set(d) or not isinstance(d["swarm"], dict)
             or not isinstance(d.get("restarts", {}), dict)):
         raise ConfigError(f"{where}: expected an object with {', '.join(sorted(keys))} (and restarts)")
-    extra = sorted(set(d) - keys - {"scenarios", "aggregate", "restarts"})
+    extra = sorted(set(d) - keys - {"scenarios", "aggregate", "restarts", "requirements"})
     if extra:
         raise ConfigError(f"{where}: {shown(extra[0])}: unknown key")
     if ("aggregate" in d) != ("scenarios" in d):
@@ -172,6 +181,8 @@ def tuning_from_json(d: dict, where: str = "tuning settings", cfg: Config | None
     flat.update({f"restarts.{k}": v for k, v in d.get("restarts", {}).items()})    # none: the defaults
     flat.update({"swarm.lower": d["lower"], "swarm.upper": d["upper"], "swarm.seed": d["seed"]})
     t = tuning_from_parameters(flat, {k: where for k in flat})
+    if "requirements" in d:
+        t = t.replace(requirements=requirements_from_json(d["requirements"], f"{where}: requirements"))
     if "scenarios" not in d:
         return t
     scenarios = check_scenarios(scenarios_from_json(d["scenarios"], f"{where}: scenarios"), cfg or Config(),
@@ -221,6 +232,7 @@ class TuneResult:
     scenarios: int = 0              # robust tuning: J is the aggregate over this many scenarios
     aggregate: str = ""
     bounds: BoundDiagnostics | None = None
+    answer: dict | None = None      # the answer's nominal run: with a travel, a validated band or requirements
 
     @property
     def gains(self) -> tuple[float, float, float]:
@@ -234,24 +246,91 @@ class TuneResult:
                 "success": bool(self.result.success), "message": str(self.result.message),
                 "history": [to_json(h.best_cost) for h in self.result.history],
                 **({"bounds": self.bounds.as_json()} if self.bounds is not None else {}),
+                **({"answer": _finite(self.answer)} if self.answer is not None else {}),
                 **({"scenarios": self.scenarios, "aggregate": self.aggregate,
                     "episodes": self.result.nfev * self.scenarios} if self.scenarios else {})}
+
+    def lines(self) -> list[str]:
+        """The answer's requirements and the spool-travel warning, one line each (none on the reference)."""
+        if self.answer is None:
+            return []
+        out = report_lines(self.answer.get("requirements", []))
+        if "vouch" in self.answer:
+            out.append(vouch_line(self.answer["vouch"], self.answer["vouch"]["band_hz"]))
+        travel, m = self.answer["valve_limit"], self.answer["measures"]
+        if travel > 0.0 and m["u_peak"] > travel:
+            out.append(f"warning: the tuned gains' command exceeds the spool travel {travel * 1e3:g} mm on the "
+                       f"nominal run: peak {m['u_peak'] * 1e3:.3g} mm, at the stop on {100 * m['at_stop']:.2f} % "
+                       "of the samples" + ("" if "requirements" in self.answer else
+                                           " (the paper's J rewards commands the valve cannot make: --requirements "
+                                           "config/requirements_machine.yaml states the machine's)"))
+        return out
+
+
+def _finite(d):
+    if isinstance(d, dict):
+        return {k: _finite(v) for k, v in d.items()}
+    if isinstance(d, list):
+        return [_finite(v) for v in d]
+    return to_json(d) if isinstance(d, float) else d
+
+
+def answer_run(cfg: Config, tuning: Tuning, gains) -> dict | None:
+    """The measures (and requirements) of ``gains`` on ``cfg``'s nominal run
+    and whether the model vouches for them, when the plant has a spool travel
+    or a validated band or the tuning has requirements; else None."""
+    variants = unseen_variants(cfg)
+    req = tuning.requirements
+    if req is None and cfg.plant.valve_limit <= 0.0 and not variants:
+        return None
+    rows = evaluate_measured(np.array([gains]), [cfg] + [v.cfg for v in variants],
+                             **({"corner": req.hf_frequency} if req else {}))[0]
+    row = rows[0]
+    out = {"valve_limit": float(cfg.plant.valve_limit), "measures": dict(zip(MEASURES, map(float, row[4:])))}
+    if req is not None:
+        out["requirements"] = req.report(row)
+        out["J_requirements"] = float(req.cost(row[None, :])[0])
+    if variants:
+        out["vouch"] = {"band_hz": float(cfg.plant.validated_band),
+                        **vouch_report([v.name for v in variants], [v.text for v in variants], float(row[0]),
+                                       rows[1:, 0], capped=any(v.capped for v in variants))}
+    return out
 
 
 def make_objective(cfg: Config, tuning: Tuning,
                    batch: Callable[[np.ndarray, list], np.ndarray] | None = None) -> Callable[[np.ndarray], np.ndarray]:
     """What a tuning session minimises: (P, 3) gains -> P costs J on ``cfg``'s
     nominal episode, or (robust tuning) the aggregate of J over ``tuning.scenarios``;
-    ``batch``: the batch evaluator (default :func:`~has_control.core.episode.evaluate_configs`)."""
-    run = batch or evaluate_configs
+    ``batch``: the batch evaluator (default :func:`~has_control.core.episode.evaluate_configs`).
+    With ``tuning.requirements`` the cost is the machine's
+    (:mod:`~has_control.tuning.requirements`); where the plant states a
+    validated band (``plant.validated_band``) a nominal session, in process,
+    charges the candidates that rely on what lies above it
+    (:mod:`~has_control.tuning.vouch`)."""
+    req = tuning.requirements
+    if req is not None and batch is not None:
+        raise ConfigError("requirements: scored by the in-process evaluator only (not --dask or the graph)")
+    variants = [v.cfg for v in unseen_variants(cfg)] if batch is None and not tuning.scenarios else []
+    if req is not None:
+        def cost(k, cfgs):
+            return req.cost(evaluate_measured(k, cfgs, corner=req.hf_frequency))
+    else:
+        run = batch or evaluate_configs
+
+        def cost(k, cfgs):
+            return run(k, cfgs)[:, :, 0]
     if tuning.scenarios:
         configs = scenario_configs(cfg, tuning.scenarios)
 
         def objective(k):
-            return tuning.aggregate(run(k, configs)[:, :, 0])
+            return tuning.aggregate(cost(k, configs))
+    elif variants:
+        def objective(k):
+            c = cost(k, [cfg] + variants)
+            return vouched_cost(c[:, 0], c[:, 1:])
     else:
         def objective(k):
-            return run(k, [cfg])[:, 0, 0]
+            return cost(k, [cfg])[:, 0]
     return objective
 
 
@@ -285,5 +364,6 @@ def tune(cfg: Config | None = None, tuning: Tuning | None = None,
     bounds = None
     if diagnostics and result.success:
         bounds = diagnose(objective, result.x, result.fun, swarm.lower, swarm.upper)
+    answer = answer_run(cfg, tuning, result.x) if result.success else None
     return TuneResult(swarm.name, swarm.seed, result, seconds,
-                      len(tuning.scenarios), str(tuning.aggregate) if tuning.scenarios else "", bounds)
+                      len(tuning.scenarios), str(tuning.aggregate) if tuning.scenarios else "", bounds, answer)
