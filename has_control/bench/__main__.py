@@ -15,6 +15,7 @@ from has_control.bench.dask import bench_dask, print_dask
 from has_control.bench.evaluator import bench_evaluator
 from has_control.bench.foxglove import bench_foxglove
 from has_control.bench.graph import bench_graph, print_graph
+from has_control.bench.machines import bench_objectives, print_objectives
 from has_control.bench.scoring import bench_scoring
 from has_control.bench.tuning import bench_optimiser, bench_paper, bench_roads, bench_scenarios
 from has_control.bench.startup import bench_startup, print_startup
@@ -39,6 +40,10 @@ def main(argv=None) -> int:
                          "Dask's per-task costs and the scaling model (about 30 s)")
     ap.add_argument("--foxglove", action="store_true",
                     help="run only the live view's cost per message (no client, one client, a list append)")
+    ap.add_argument("--machines", action="store_true",
+                    help="run only the objectives' cost per candidate (the paper's J, requirements, vouched, "
+                         "robust) against today's robust tuning; the machine study is python -m "
+                         "has_control.bench.machines")
     ap.add_argument("--tuners", action="store_true",
                     help="run only the tuning methods' study: cma-restarts, the paper's swarms, IPOP-CMA-ES, SciPy DE "
                          "over seeds at 8000/4000/2000 evaluations (CPU-heavy: about 70 s of CPU per seed)")
@@ -52,6 +57,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.foxglove:
         bench_foxglove()
+        return 0
+    if args.machines:
+        print_objectives(bench_objectives(repeats=args.repeats))
         return 0
     if args.startup:
         print_startup(bench_startup(repeats=args.repeats), args.repeats)

@@ -40,7 +40,7 @@ from has_control.identify.data import Experiment, experiment_from_trace
 from has_control.identify.params_out import params_yaml
 from has_control.identify.structures import select_structure
 from has_control.tuning.requirements import load_requirements
-from has_control.tuning.tuner import load_tuning, robust_tuning, tune
+from has_control.tuning.tuner import load_tuning, make_objective, robust_tuning, tune
 
 #: The sensors' noise of config/scenarios.yaml, read by the plant (as a machine's are) and the spool's travel.
 SENSORS = {"noise.position": 1.0e-6, "noise.velocity": 1.0e-4, "noise.pressure_cap": 1.0e4,
@@ -196,6 +196,51 @@ def main(argv=None) -> int:
         with open(args.json, "w") as f:
             json.dump({"evaluations": args.evaluations, "rows": rows}, f, indent=1)
     return 0
+
+
+def bench_objectives(repeats: int = 3, particles: int = 80) -> dict:
+    """Evaluator time per candidate of each objective, best of ``repeats``
+    (alternating), against today's robust tuning (cvar:0.2 over
+    config/scenarios.yaml) in the same run: the paper's J, the requirements,
+    the vouched nominal and the requirements over config/scenarios_machine.yaml,
+    on the spool-100 machine's identified-like model (2 s episodes)."""
+    base = build_config({"plant.valve_frequency": 100.0, "plant.valve_limit": 5e-3, "simulation.horizon": 2.0,
+                         **{k: v for k, v in SENSORS.items() if k.startswith("noise.")}}, source="bench")
+    vouched = build_config({"plant.validated_band": 258.0}, source="bench", base=base)
+    ref2 = build_config({"simulation.horizon": 2.0}, source="bench")
+    req = load_requirements(REQUIREMENTS)
+    t = load_tuning()
+    cases = {
+        "robust, cvar:0.2 over config/scenarios.yaml (today)":
+            (ref2, robust_tuning(t, ref2, str(CONFIG_DIR / "scenarios.yaml"), "cvar:0.2")),
+        "the paper's J, nominal": (base, t),
+        "requirements, nominal": (base, t.replace(requirements=req)),
+        "the paper's J, vouched (band 258 Hz: 4 runs a candidate)": (vouched, t),
+        "requirements, vouched": (vouched, t.replace(requirements=req)),
+        "requirements over config/scenarios_machine.yaml, cvar:0.2":
+            (base, robust_tuning(t, base, str(CONFIG_DIR / "scenarios_machine.yaml"), "cvar:0.2")
+             .replace(requirements=req)),
+    }
+    k = np.random.default_rng(0).uniform([150.0] * 3, [400.0] * 3, (particles, 3))
+    objectives = {name: make_objective(c, tt) for name, (c, tt) in cases.items()}
+    for f in objectives.values():
+        f(k[:8])                                                   # compile
+    best = {name: float("inf") for name in objectives}
+    for _ in range(repeats):
+        for name, f in objectives.items():
+            t0 = time.perf_counter()
+            f(k)
+            best[name] = min(best[name], time.perf_counter() - t0)
+    today = best[next(iter(best))]
+    return {"particles": particles, "repeats": repeats,
+            "runs": {name: {"seconds_per_candidate": s / particles, "ratio": s / today} for name, s in best.items()}}
+
+
+def print_objectives(r: dict) -> None:
+    print(f"objective cost: {r['particles']} candidates, 2 s episodes, best of {r['repeats']} alternating; "
+          "evaluator time per candidate against today's robust tuning")
+    for name, run in r["runs"].items():
+        print(f"  {name}: {1e3 * run['seconds_per_candidate']:.2f} ms ({run['ratio']:.2f}x)")
 
 
 if __name__ == "__main__":

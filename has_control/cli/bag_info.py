@@ -8,8 +8,6 @@ from has_control.bag import PARAMETERS_KEY, describe, read_bag
 from has_control.bag.recorded import read_recording
 from has_control.common.errors import HasControlError
 
-HELP = "topics, types, counts and duration of a bag"
-
 
 def add_arguments(p) -> None:
     p.add_argument("bag", metavar="BAG")

@@ -9,8 +9,6 @@ from has_control.cli.args import add_config, add_json, check_outputs, gains_arg,
 from has_control.config import load_config
 from has_control.common.errors import HasControlError
 
-HELP = "deploy tuned gains in steps under a watchdog that falls back to the safe gains"
-
 
 def add_arguments(p) -> None:
     p.add_argument("--gains", nargs=3, required=True, metavar=("K1", "K2", "K3"), help="the tuned gains [1/s]")

@@ -10,9 +10,6 @@ from has_control.cli.args import add_config, add_json, add_reading, check_apart,
 from has_control.common.errors import HasControlError
 
 
-HELP = "estimate plant parameters from recorded runs"
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bags", nargs="+", metavar="BAG", help="recorded runs (bag directories or .mcap files)")
     p.add_argument("--estimate", nargs="+", metavar="KEY",

@@ -15,9 +15,6 @@ from has_control.tuning.tuner import load_tuning, make_objective, robust_tuning
 MAX_POINTS = 300                 # a side of a slice's grid: 3 x 300^2 = 270 000 episodes at most
 
 
-HELP = "J over 2-D slices of the gain space: heatmaps, bound and minima marked"
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--point", nargs=3, metavar=("K1", "K2", "K3"),
                    help="the slices pass through these gains [1/s] (default: the paper's tuned 656.11 656.13 656.14)")

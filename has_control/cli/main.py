@@ -15,17 +15,26 @@ from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
 from has_control import raise_interrupt
-from has_control.cli import (
-    bag_info, deploy, identify, landscape, plot, reproduce, replay, robustness, score, simulate, stack, tune,
-)
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
 from has_control.cli.node_help import print_help, wants_help
 from has_control.common.errors import HasControlError
 
-#: The subcommands, in the order ``--help`` lists them.
-COMMANDS = {"simulate": simulate, "tune": tune, "robustness": robustness, "reproduce": reproduce,
-            "stack": stack, "score": score, "bag-info": bag_info, "plot": plot, "replay": replay,
-            "identify": identify, "landscape": landscape, "deploy": deploy}
+#: The subcommands, in the order ``--help`` lists them, and their one-line help; each is the module
+#: ``has_control.cli.<name>`` (``-`` as ``_``), imported only when it runs.
+COMMANDS = {
+    "simulate": "run one episode with one gain set and print its score",
+    "tune": "tune k1, k2, k3 (cma-restarts, or the paper's particle swarms)",
+    "robustness": "J and e_max of gain sets on every scenario of a set, and their aggregates",
+    "reproduce": "the paper's experiment over seeds, as a report",
+    "stack": "run plant and controller nodes in one process, lock-step or real time",
+    "score": "score a recorded run (J, e_max, e_mu, e_sigma) from its bag",
+    "bag-info": "topics, types, counts and duration of a bag",
+    "plot": "recorded runs (bags) as one figure: position, error, valve, pressures, estimates, gains",
+    "replay": "publish a bag with its timing, or replay it to a controller",
+    "identify": "estimate plant parameters from recorded runs",
+    "landscape": "J over 2-D slices of the gain space: heatmaps, bound and minima marked",
+    "deploy": "deploy tuned gains in steps under a watchdog that falls back to the safe gains",
+}
 
 #: Node subcommands: the node's module under has_control.nodes; the rest of the line goes to ROS.
 NODES = {"plant": "plant_node", "controller": "controller_node", "tuner": "tuner_node"}
@@ -40,14 +49,19 @@ def run_node(name: str, ros_args: list[str]) -> int:
     return 0
 
 
-def build_parser() -> Parser:
+def build_parser(command: str | None = None) -> Parser:
+    """The parser; with ``command`` (a subcommand's name) only that
+    subcommand's module is imported and its arguments declared (the others
+    are listed by their help), so a run loads what it runs and no more."""
     p = Parser(prog="has-control", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"has-control {_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
-    for name, command in COMMANDS.items():
-        sp = sub.add_parser(name, help=command.HELP)
-        command.add_arguments(sp)
-        sp.set_defaults(func=command.run)
+    for name, text in COMMANDS.items():
+        sp = sub.add_parser(name, help=text)
+        if command is None or name == command:
+            module = import_module(f"has_control.cli.{name.replace('-', '_')}")
+            module.add_arguments(sp)
+            sp.set_defaults(func=module.run)
     for name in NODES:
         sub.add_parser(name, help=f"run the {name} node; what follows goes to ROS (--ros-args -p k:=v ...)")
     return p
@@ -71,7 +85,7 @@ def main(argv=None) -> int:
     try:
         if argv and argv[0] in NODES:
             return run_node(argv[0], argv[1:])
-        args = build_parser().parse_args(argv)
+        args = build_parser(argv[0] if argv and argv[0] in COMMANDS else None).parse_args(argv)
         return args.func(args)
     except HasControlError as exc:
         print(f"has-control: error: {exc}", file=sys.stderr)

@@ -15,8 +15,6 @@ from has_control.cli.args import add_reading, figure_path, number, reading_of
 from has_control.common.errors import HasControlError
 from has_control.common.files import check_output
 
-HELP = "recorded runs (bags) as one figure: position, error, valve, pressures, estimates, gains"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("bags", nargs="+", metavar="BAG", help="bag directory or .mcap file (several: overlaid)")

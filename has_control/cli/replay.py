@@ -6,7 +6,6 @@ from __future__ import annotations
 from has_control.cli.args import at_least
 from has_control.common.errors import HasControlError
 
-HELP = "publish a bag with its timing, or replay it to a controller"
 RATE_MIN = 1e-3                     # --rate: slower than this is a stalled replay
 
 

@@ -10,8 +10,6 @@ from has_control.cli.tune import tuning_args
 from has_control.common.files import check_new_output
 from has_control.tuning.reproduce import run_experiment, write_report
 
-HELP = "the paper's experiment over seeds, as a report"
-
 
 def add_arguments(p) -> None:
     p.add_argument("--seeds", type=positive_int, default=10, metavar="N", help="seeds 1..N (default 10)")

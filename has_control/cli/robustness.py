@@ -11,8 +11,6 @@ from has_control.config import load_scenarios
 from has_control.core.scenarios import parse_aggregate
 from has_control.tuning.robustness import robustness_table
 
-HELP = "J and e_max of gain sets on every scenario of a set, and their aggregates"
-
 
 def add_arguments(p) -> None:
     p.add_argument("--gains", nargs=3, action="append", required=True, metavar=("K1", "K2", "K3"),

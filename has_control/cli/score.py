@@ -6,8 +6,6 @@ import json
 from has_control.bag import score_bag
 from has_control.cli.args import add_config, add_json, add_reading, reading_of
 
-HELP = "score a recorded run (J, e_max, e_mu, e_sigma) from its bag"
-
 
 def add_arguments(p) -> None:
     p.add_argument("bag", metavar="BAG", help="bag directory or .mcap file")

@@ -10,8 +10,6 @@ from has_control.common.files import write_atomic
 from has_control.core.episode import TRACE_COLUMNS, TRACE_UNITS, simulate
 from has_control.core.params import MANUAL_GAINS
 
-HELP = "run one episode with one gain set and print its score"
-
 
 def add_arguments(p) -> None:
     p.add_argument("--gains", nargs=3, metavar=("K1", "K2", "K3"),

@@ -14,8 +14,6 @@ from has_control.tuning.bounds import BoundDiagnostics
 from has_control.tuning.methods import METHODS
 from has_control.tuning.tuner import load_tuning
 
-HELP = "run plant and controller nodes in one process, lock-step or real time"
-
 
 def add_arguments(p) -> None:
     p.add_argument("--duration", type=float, metavar="S", help="horizon [s] (default: config, 10 s)")

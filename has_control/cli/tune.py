@@ -15,8 +15,6 @@ from has_control.tuning.methods import METHODS, is_swarm
 from has_control.tuning.requirements import load_requirements
 from has_control.tuning.tuner import load_tuning, robust_tuning
 
-HELP = "tune k1, k2, k3 (cma-restarts, or the paper's particle swarms)"
-
 
 def add_arguments(p) -> None:
     p.add_argument("--variant", choices=tuple(METHODS),
