@@ -49,6 +49,7 @@ class ControllerProcess:
         self.cfg = cfg
         arr = arr or EpisodeArrays.from_config(cfg)
         self.ap, self.cp, self.rp = arr.actuator, arr.adaptation, arr.reference
+        self.pp = arr.plant                     # the model's plant: predicts a state that never arrives
         # noise.added_by plant: the states arrive measured already; the law adds nothing
         self.sp = arr.sensor if cfg.noise.added_by == "controller" else np.zeros_like(arr.sensor)
         self.seed = arr.seed

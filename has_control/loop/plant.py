@@ -15,6 +15,22 @@ reaches the state. Two different commands for one sample are a conflict
 (:class:`~has_control.loop.guards.Conflicts`). A diverged state (|y| > y_limit
 or not finite) is published and ends the episode.
 
+**Unstamped commands** (the ros2_control layout, :meth:`PlantProcess.on_forward_command`):
+a forward_command_controller's ``std_msgs/Float64MultiArray`` ``[u]`` has no header,
+so a command answers *the latest state published*, which is awaiting one answer.
+In lock-step that is exact: state i+1 is published only after command i has
+arrived. A command that arrives with no state awaiting it is one more than the
+states published: in lock-step a second controller on the topic (a conflict);
+in a paced run a command that came after its deadline (counted in
+``late_commands``, ignored), whereas a late command that arrives after the next
+state was published is taken as that state's answer (it cannot be told apart).
+
+**Dropped states** (a test hook, ``drop_every`` = N ≥ 2): the state of every
+sample i with i mod N = N − 1 is not published, as joint_state_broadcaster's
+realtime publisher skips one; in lock-step the sample then runs at once with
+the last command held (as hardware runs on with a forward_command_controller's
+last command), in a paced run it is a miss. Counted in ``dropped_states``.
+
 The process writes through a port (the node's publishers, or a fake): an object
 with ``publish(state, true_state | None, clock) -> bool`` (False: the transport
 refused the write), ``resend(state)`` (the state again, not to observers) and
@@ -29,7 +45,7 @@ from typing import Callable
 from has_control.loop.guards import AnswerLedger, Conflicts, FailSafe
 from has_control.wire import steps
 from has_control.wire.codec import NOT_FINITE
-from has_control.wire.topics import CLOCK_LAYOUT, STATE_LAYOUT
+from has_control.wire.topics import CLOCK_LAYOUT, FORWARD_COMMAND_LAYOUT, STATE_LAYOUT
 
 
 class PlantProcess:
@@ -37,8 +53,11 @@ class PlantProcess:
     under ``schedule`` (:mod:`has_control.loop.schedule`), ``samples`` per episode (0: until stopped)."""
 
     def __init__(self, cfg, schedule, port, logger, *, samples: int = 0,
-                 fallback: Callable[[bytes], tuple[int, float] | None] | None = None):
+                 fallback: Callable[[bytes], tuple[int, float] | None] | None = None, drop_every: int = 0):
+        if drop_every == 1 or drop_every < 0:
+            raise ValueError(f"drop_every = {drop_every}: 0 (none) or >= 2")
         self.schedule, self.port, self.logger, self.fallback = schedule, port, logger, fallback
+        self.drop_every = drop_every
         self.actuator = cfg.plant.actuator(cfg.actuator)      # this plant's own parameters
         self.ap = cfg.plant.as_array(cfg.actuator)            # ... and its valve
         self.step_s, self.step_ns, self.y_limit = cfg.episode.step, cfg.episode.step_ns, cfg.episode.y_limit
@@ -53,7 +72,7 @@ class PlantProcess:
         self.conflicts = Conflicts(logger, getattr(port, "command_publishers", lambda: ""), "conflicting commands")
         self.conflicts.on_stop = self._stop_now
         self.answers = AnswerLedger()
-        self.malformed_commands = 0
+        self.malformed_commands = self.late_commands = self.dropped_states = 0
         self.publish_failures = 0                 # states the transport refused to send
         self.log: list[tuple[int, float, float, float, float, float]] | None = None   # (sample, y, ẏ, P1, P2, u)
         self.started_at = self.run_seconds = 0.0
@@ -72,7 +91,7 @@ class PlantProcess:
         steps.encode_state(self.x, self.ap, 0, self.step_ns, self.state_msg, self.clock_msg, self._scratch)
         self._measure()
         self.last_publish = time.monotonic()
-        self.published = False
+        self.published = self.awaiting = False
 
     def start(self) -> None:
         """Run an episode from the current state (lock-step: its state is published now)."""
@@ -108,7 +127,18 @@ class PlantProcess:
 
     def publish_state(self) -> None:
         """The state of the current sample (with measured states, then the true
-        state), then its clock; a write the transport refuses is a miss, not a crash."""
+        state), then its clock; a write the transport refuses is a miss, not a crash.
+        A state dropped by ``drop_every`` is not written (lock-step: the sample runs
+        at once with the last command held)."""
+        if self.drop_every and self.sample % self.drop_every == self.drop_every - 1:
+            self.dropped_states += 1
+            self.last_publish = time.monotonic()
+            self.published, self.awaiting = True, False
+            if not self.schedule.paced and not self.finished:
+                if self.step(self.command_u if self.command_sample >= 0 else 0.0, answered=False):
+                    self.publish_state()
+            return
+        self.awaiting = True
         if not self.port.publish(bytes(self.state_msg), bytes(self.true_msg) if self.measured else None,
                                  bytes(self.clock_msg)):
             self.publish_failures += 1
@@ -132,7 +162,7 @@ class PlantProcess:
         bad = steps.plant_sample(self.x, u, self.ap, self.step_s, self.y_limit, self.sample, self.step_ns,
                                  self.state_msg, self.clock_msg, self._scratch)
         self._measure()
-        if self.samples and self.sample >= self.samples:
+        if self.samples and self.sample - self.first_sample >= self.samples:     # this episode's samples
             self.finish()
             return False
         if bad:
@@ -164,6 +194,32 @@ class PlantProcess:
             self.command_sample, self.command_u = i, u
         self.schedule.answer(self, i, u)
 
+    def on_forward_command(self, data: bytes) -> None:
+        """A serialized ``std_msgs/Float64MultiArray`` ``[u]`` (no stamp): the answer to
+        the latest state published (see the module docstring); another layout is read
+        by the port's ``fallback`` (→ (−1, u)) if it can, else refused and counted."""
+        values = FORWARD_COMMAND_LAYOUT.read(data)
+        u = values[0] if values is not None else None
+        if u is None and self.fallback is not None:
+            read = self.fallback(data)
+            u = read[1] if read is not None else None
+        if u is None or not math.isfinite(u):
+            self.malformed_commands += 1
+            what = "not a Float64MultiArray [u]" if u is None else "a non-finite value"
+            self.logger.warning(f"refused a command ({what}); {self.malformed_commands} so far",
+                                throttle_duration_sec=5.0)
+            return
+        if not self.awaiting:
+            if self.schedule.paced:
+                self.late_commands += 1
+            elif self.published and not self.finished:
+                self.conflicts.seen(f"a command with no state awaiting it at sample {self.sample}")
+            return
+        self.awaiting = False
+        i = self.sample
+        self.command_sample, self.command_u = i, u
+        self.schedule.answer(self, i, u)
+
     def _other_layout(self, data: bytes, status: int) -> tuple[int, float]:
         """A command the fast decoder refused: read by the port's ``fallback``
         (stamp [ns], u [m]) if it can; otherwise counted and ignored."""
@@ -183,5 +239,10 @@ class PlantProcess:
 
     def figures(self) -> dict[str, float]:
         """The counts the diagnostics report."""
-        return {"failsafe_samples": float(self.fail_safe.samples), "malformed_commands": float(self.malformed_commands),
-                "conflicts": float(self.conflicts.count)}
+        figures = {"failsafe_samples": float(self.fail_safe.samples),
+                   "malformed_commands": float(self.malformed_commands), "conflicts": float(self.conflicts.count)}
+        if self.drop_every:
+            figures["dropped_states"] = float(self.dropped_states)
+        if self.late_commands:
+            figures["late_commands"] = float(self.late_commands)
+        return figures

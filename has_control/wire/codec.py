@@ -58,6 +58,16 @@ class Layout:
             struct.pack_into("<d", buf, int(off), float(v))
         return bytes(buf)
 
+    def read(self, data: bytes) -> list[float] | None:
+        """The values of a message of this layout, in Python (None: another layout,
+        e.g. a Float64MultiArray of another length or label); for the rare readers."""
+        if len(data) != self.size:
+            return None
+        raw = np.frombuffer(data, dtype=np.uint8)
+        if not np.array_equal(raw[self.fixed], self.template[self.fixed]):
+            return None
+        return [struct.unpack_from("<d", data, int(off))[0] for off in self.values]
+
 
 def _layout(builder, values: list[int], stamped: bool) -> Layout:
     t = np.frombuffer(bytes(builder.buf), dtype=np.uint8).copy()
