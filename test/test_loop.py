@@ -19,7 +19,7 @@ from has_control.loop.schedule import LockStep, Paced, run_loop, schedule_of
 from has_control.wire import steps
 from has_control.wire.codec import get_stamp
 from has_control.wire.joint_mapping import DEFAULT_STATE_INTERFACES, parse_state_interfaces
-from has_control.wire.topics import CLOCK_LAYOUT, COMMAND_LAYOUT, FORWARD_COMMAND_LAYOUT, STATE_LAYOUT
+from has_control.wire.topics import CLOCK_LAYOUT, COMMAND_LAYOUT, FORWARD_COMMAND_LAYOUT, STATE_LAYOUT, STATE_NAMES
 
 
 class Link:
@@ -356,3 +356,85 @@ def test_a_plant_reset_restarts_the_controllers_run_on_either_port():
                 [np.frombuffer(c[-8:], dtype="<f8")[0] for c in got]
             assert u == list(ref.data[:200, Col.u]), (type(port).__name__, run)      # the second run too
     assert r2c.restarts == 1 and r2c.stale == 0 and hc.conflicts.count == 0
+
+
+class JointStatesLink(Link):
+    """The plant's ros2_control layout in one queue: its state bytes reach the port as
+    a JointState message object, the port's ``[u]`` the plant's ``on_forward_command``."""
+
+    def command(self, data: bytes) -> None:
+        self.queue.append(("command", data))
+
+    def spin_once(self, timeout_sec: float = 0.0) -> None:
+        if self.queue:
+            kind, data = self.queue.popleft()
+            if kind == "state":
+                v, ns = STATE_LAYOUT.read(data), int(get_stamp(data))
+                msg = SimpleNamespace(name=list(STATE_NAMES), position=v[0:3], velocity=v[3:6], effort=v[6:9],
+                                      header=SimpleNamespace(stamp=SimpleNamespace(sec=ns // 10**9,
+                                                                                   nanosec=ns % 10**9)))
+                self.port.on_state(msg)
+            else:
+                self.plant.on_forward_command(data)
+
+
+def _ros2_control_loop(cfg, samples, drop_every=0):
+    link, log = JointStatesLink(), ListLog()
+    plant = PlantProcess(cfg, LockStep(60.0, 60.0), link, log, samples=samples, drop_every=drop_every)
+    plant.log = []
+    controller = ControllerProcess(cfg, log)
+    controller.record_trace(samples)
+    got = []
+    out = Outputs(lambda b: (got.append(b), link.command(b)), link.command, lambda b: None, lambda b: None,
+                  lambda b: None)
+    link.plant = plant
+    link.port = make_port("ros2_control", controller, out, Conflicts(log),
+                          mapping=parse_state_interfaces(DEFAULT_STATE_INTERFACES))
+    plant.start()
+    run_loop(plant, link.spin_once, plant.schedule)
+    return plant, link.port, controller, got
+
+
+def test_the_plant_in_its_ros2_control_layout_runs_the_library_run_with_the_ros2_control_port():
+    """/joint_states out, Float64MultiArray [u] in (one command answers the latest state): simulate's run."""
+    cfg, n = with_horizon(Config(), 1.5), 2000
+    plant, port, controller, got = _ros2_control_loop(cfg, n)
+    assert plant.finished and plant.sample == n and len(got) == n
+    np.testing.assert_array_equal(controller.trace, simulate(cfg).data[:n])
+    assert plant.conflicts.count == 0 and port.missing == 0 and port.stale == 0
+
+
+def test_dropped_states_are_predicted_so_the_answers_are_those_of_a_controller_that_saw_every_state():
+    """drop_states: the plant runs a dropped sample with the last command held; the
+    controller predicts it with the model, exactly (model = plant), so every answer
+    equals a controller fed every state of the same run; the drops are counted."""
+    cfg, n = with_horizon(Config(), 1.5), 2000
+    plant, port, controller, got = _ros2_control_loop(cfg, n, drop_every=50)
+    assert plant.sample == n and plant.dropped_states == n // 50 and port.missing == n // 50 - 1
+    assert len(got) == n - n // 50 and plant.conflicts.count == 0
+    rows = np.array([row[1:5] for row in plant.log])
+    held = np.array([row[5] for row in plant.log])
+    dropped = [i for i in range(n) if i % 50 == 49]
+    assert all(held[i] == held[i - 1] for i in dropped)                 # the last command held
+    _, _, everything = _feed(cfg, rows)
+    answered = [i for i in range(n) if i % 50 != 49]
+    assert [np.frombuffer(c[-8:], dtype="<f8")[0] for c in got] == [everything[i] for i in answered]
+    assert np.all(np.isnan(controller.trace[dropped[:-1]]))
+    assert np.array_equal(controller.trace[answered, Col.u], held[answered])
+
+
+def test_start_after_an_episode_runs_a_whole_episode_from_where_it_stopped():
+    """plant/start after a finished episode runs ``samples`` more samples, not one (#30)."""
+    cfg, n = with_horizon(Config(), 1.5), 100
+    link, plant, controller, log, _ = _wire(cfg, LockStep(timeout=60.0, startup_timeout=60.0), n)
+    plant.start()
+    run_loop(plant, link.spin_once, plant.schedule)
+    assert plant.finished and plant.sample == n
+    plant.start()
+    stats = run_loop(plant, link.spin_once, plant.schedule)
+    assert plant.finished and plant.sample == 2 * n and stats.samples == n
+    plant.reset()
+    plant.start()
+    run_loop(plant, link.spin_once, plant.schedule)
+    assert plant.sample == n
+    np.testing.assert_array_equal(controller.trace, simulate(cfg).data[:n])     # a new run from â(0)

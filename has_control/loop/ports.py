@@ -21,7 +21,9 @@
   (:func:`has_control.wire.steps.plant_sample` with the controller's
   ``actuator.*``/``plant.*``), set to each state received and stepped with the
   command sent for it; at a missing sample the law runs (not published) on the
-  prediction, so the estimates integrate over the gap as the library's did.
+  prediction, so the estimates integrate over the gap as the library's did,
+  and the model steps on with the last command sent (what a
+  forward_command_controller holds).
   When the model is the plant (the reference configuration, no measurement
   noise added by the plant) the prediction is the state, bit for bit, and every
   answered command equals ``simulate``'s. Otherwise equality is impossible: the
@@ -183,6 +185,7 @@ class Ros2ControlPort(_Port):
         # the model's plant, stepped with each command sent: its state predicts a sample that never arrives
         self._x = steps.plant_state(p.cfg.plant.actuator(p.cfg.actuator).initial_state())
         self._last[:] = np.nan
+        self._u_sent = 0.0
 
     def _sample(self, ns: int) -> int:
         """The sample a state stamped ``ns`` is: rounded to the grid from the first
@@ -246,7 +249,8 @@ class Ros2ControlPort(_Port):
             self.next = i
         while self.next < i:                     # samples that never arrived: the model's prediction
             j = self.next
-            self._predict(self._answer(j), j)
+            self._answer(j)                      # the estimates integrate over j, its command is not sent:
+            self._predict(self._u_sent, j)       # the plant ran j with the last one held
             if j < len(p.trace):
                 p.trace[j] = np.nan              # not answered
             self.missing += 1
@@ -258,6 +262,7 @@ class Ros2ControlPort(_Port):
         self.next = i + 1
         self._announce(i)
         self.out.command(FORWARD_COMMAND_LAYOUT.encode([u]))
+        self._u_sent = u
         self._predict(u, i)
         self._answered(began)
 

@@ -56,6 +56,21 @@ keeps serving after an episode instead of exiting), ``foxglove_port``
 (serve ``state`` and ``clock`` live on a Foxglove WebSocket at this port of
 127.0.0.1, :mod:`has_control.nodes.foxglove`; 0: off).
 
+``interface: ros2_control`` (read at start-up): the plant speaks as a
+ros2_control system does (``topic_based_ros2_control``, a hardware driver with
+joint_state_broadcaster and a forward_command_controller): its state, the same
+``sensor_msgs/JointState`` (joints actuator, chamber_1, chamber_2: the default
+``state_interfaces`` of :mod:`has_control.wire.joint_mapping`), stamped with the
+simulation time i·Δt, on ``joint_states_topic`` (default ``/joint_states``), and
+the valve command ``std_msgs/Float64MultiArray`` ``[u]`` from ``command_topic``
+(default ``/forward_command_controller/commands``). The command has no stamp:
+it answers the latest state published (:mod:`has_control.loop.plant`), so the
+controller's ros2_control mode runs end to end, lock-step or paced, against
+this plant. ``drop_states`` (a test hook, N ≥ 2; 0: off): the state of every
+Nth sample is not published; lock-step runs that sample at once with the last
+command held (counted as ``dropped_states`` in /diagnostics). A command delay is
+``plant.delay`` [samples].
+
 Managed node (:mod:`has_control.nodes.managed`): ``configure`` validates the
 parameters, builds the plant's tables and creates the topics; ``activate``
 lets the loop run (``main`` starts an episode when a controller connects,
@@ -73,11 +88,14 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 
 from has_control.common.errors import ConfigError
 from has_control.loop.plant import PlantProcess
+from has_control.loop.ports import INTERFACES
 from has_control.loop.schedule import MODES, LoopStats, paced_summary, run_loop, schedule_of
 from has_control.wire import steps
+from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC
 from has_control.wire.topics import CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, TRUE_STATE
 from has_control.nodes.live_tap import node_tap
 from has_control.nodes.managed import AUTOSTART, autostart, refuse, state_label
@@ -96,9 +114,17 @@ OWN_PARAMETERS = (
     ("samples", 0, "samples per episode (0: until stopped)"),
     AUTOSTART,
     ("keep_alive", False, "a served plant: episodes only on ~/start, kept serving after each"),
+    ("interface", "has_control", "has_control (state/command JointStates) | ros2_control (JointState on "
+     "joint_states_topic, Float64MultiArray [u] from command_topic, as a hardware driver)"),
+    ("joint_states_topic", DEFAULT_JOINT_STATES_TOPIC, "ros2_control: the sensor_msgs/JointState topic written"),
+    ("command_topic", DEFAULT_COMMAND_TOPIC, "ros2_control: the std_msgs/Float64MultiArray [u] topic read"),
+    ("drop_states", 0, "test hook: the state of every Nth sample is not published (0: none; else >= 2)"),
 )
+#: Read at start-up only.
+READ_ONLY = ("mode", "realtime_priority", "autostart", "interface", "joint_states_topic", "command_topic")
 #: Parameters that change a running plant: where each lives in the process.
-LIVE = {"samples": "samples", "command_timeout": "schedule.timeout", "startup_timeout": "schedule.startup_timeout"}
+LIVE = {"samples": "samples", "command_timeout": "schedule.timeout", "startup_timeout": "schedule.startup_timeout",
+        "drop_states": "drop_every"}
 
 
 def _invalid(name: str, value) -> str | None:
@@ -114,6 +140,10 @@ def _invalid(name: str, value) -> str | None:
         return f"realtime_priority = {value!r}: must be an integer in 0..99 (0: normal scheduling)"
     if name == "mode" and value not in MODES:
         return f"mode = {value!r}: expected one of {', '.join(MODES)}"
+    if name == "interface" and value not in INTERFACES:
+        return f"interface = {value!r}: expected one of {', '.join(INTERFACES)}"
+    if name == "drop_states" and not (isinstance(value, int) and (value == 0 or value >= 2)):
+        return f"drop_states = {value!r}: must be 0 (none) or an integer >= 2"
     return None
 
 
@@ -147,6 +177,16 @@ def _other_layout(data: bytes) -> tuple[int, float] | None:
         return None
 
 
+def _other_forward(data: bytes) -> tuple[int, float] | None:
+    """The slow path: (−1, u [m]) of a Float64MultiArray ``[u]`` of another layout; None if not one."""
+    try:
+        from rclpy.serialization import deserialize_message   # the rare message only
+        msg = deserialize_message(data, Float64MultiArray)
+        return (-1, float(msg.data[0])) if len(msg.data) == 1 else None
+    except Exception:                        # noqa: BLE001 - any undecodable bytes
+        return None
+
+
 class PlantNode(LifecycleNode):
     x, sample, finished, diverged, log = (_Of(n) for n in ("x", "sample", "finished", "diverged", "log"))
     command_sample, command_u, samples = _Of("command_sample"), _Of("command_u"), _Of("samples")
@@ -165,8 +205,9 @@ class PlantNode(LifecycleNode):
         declare_plant_overrides(self)
         for name, value, text in OWN_PARAMETERS:
             self.declare_parameter(name, value, ParameterDescriptor(
-                description=text, read_only=name in ("mode", "realtime_priority", "autostart"),
-                additional_constraints=f"one of: {', '.join(MODES)}" if name == "mode" else ""))
+                description=text, read_only=name in READ_ONLY,
+                additional_constraints={"mode": f"one of: {', '.join(MODES)}",
+                                        "interface": f"one of: {', '.join(INTERFACES)}"}.get(name, "")))
         self.configure_error = ""
         self.quiet = False                        # True: no "ready"/"inactive" lines (stack drives us)
         self.active = self.configured = False
@@ -187,7 +228,7 @@ class PlantNode(LifecycleNode):
         value = {name: self.get_parameter(name).value for name, *_ in OWN_PARAMETERS}
         try:
             for name in ("mode", "command_timeout", "startup_timeout", "failsafe_samples", "realtime_priority",
-                         "samples"):
+                         "samples", "interface", "drop_states"):
                 reason = _invalid(name, value[name])
                 if reason is not None:
                     raise ValueError(f"parameter {reason}")
@@ -200,7 +241,10 @@ class PlantNode(LifecycleNode):
                                failsafe_samples=int(value["failsafe_samples"]))
         steps.warm_up()                                # compile or load the step and decoder first
         tap = self._tap
-        self.state_pub = self.create_publisher(JointState, STATE, CONTROL_QOS)
+        self.interface = value["interface"]
+        ros2_control = self.interface == "ros2_control"      # a hardware driver's topics (docs/ros2_control.md)
+        self.state_pub = self.create_publisher(JointState, value["joint_states_topic"] if ros2_control else STATE,
+                                               CONTROL_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos(CLOCK_TOPIC))
         self._publish_state = raw_publish(self.state_pub, tap)
         self._publish_clock = raw_publish(self.clock_pub, tap)
@@ -209,8 +253,14 @@ class PlantNode(LifecycleNode):
             pubs.append(self.create_publisher(JointState, TRUE_STATE, CONTROL_QOS))
             self._publish_true = raw_publish(pubs[-1], tap)
         self.process = PlantProcess(cfg, schedule, self, self.get_logger(), samples=int(value["samples"]),
-                                    fallback=_other_layout)
-        self._command_sub = self.create_subscription(JointState, COMMAND, self._on_command, CONTROL_QOS, raw=True)
+                                    fallback=_other_forward if ros2_control else _other_layout,
+                                    drop_every=int(value["drop_states"]))
+        if ros2_control:
+            self._command_sub = self.create_subscription(Float64MultiArray, value["command_topic"],
+                                                         self._on_forward_command, CONTROL_QOS, raw=True)
+        else:
+            self._command_sub = self.create_subscription(JointState, COMMAND, self._on_command, CONTROL_QOS,
+                                                         raw=True)
         self._command_topic = self._command_sub.topic_name
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.configured = True
@@ -267,7 +317,7 @@ class PlantNode(LifecycleNode):
     def _on_set_parameters(self, params) -> SetParametersResult:
         for p in params:
             reason = _invalid(p.name, p.value)
-            if reason is None and p.name in ("mode", "realtime_priority"):
+            if reason is None and p.name in READ_ONLY:
                 reason = f"{p.name}: read at start-up only; restart the plant to change it"
             if reason is not None:
                 return SetParametersResult(successful=False, reason=reason)
@@ -316,6 +366,10 @@ class PlantNode(LifecycleNode):
     def _on_command(self, data: bytes) -> None:
         if self.active:
             self.process.on_command(data)
+
+    def _on_forward_command(self, data: bytes) -> None:
+        if self.active:
+            self.process.on_forward_command(data)
 
     def _check_deadline(self) -> None:
         self.process.schedule.tick(self.process, time.monotonic())
