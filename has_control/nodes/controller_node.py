@@ -78,7 +78,8 @@ from has_control.wire.joint_mapping import (DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT
                                             DEFAULT_STATE_INTERFACES, parse_state_interfaces)
 from has_control.nodes.live_tap import node_tap
 from has_control.nodes.managed import autostart as bring_up_now, declare_autostart, refuse, state_label
-from has_control.nodes.runtime import (CONTROL_QOS, node_main, publish_diagnostics, qos, raw_publish, spin,
+from has_control.nodes.runtime import (CONTROL_OFFERED_QOS, CONTROL_QOS, node_main,
+                                       publish_diagnostics, qos, raw_publish, spin,
                                        trigger_service)
 from has_control.nodes.parameters import config_from_node, declare_config
 
@@ -181,7 +182,8 @@ class ControllerNode(LifecycleNode):
         self.port = port = make_port(self.interface, process, out, self.conflicts_guard, mapping=mapping,
                                      state_topic=param["joint_states_topic"], command_topic=param["command_topic"],
                                      serialize=_serialize)
-        self.command_pub = self.create_publisher(_COMMAND_TYPES[port.command_type], port.command_topic, CONTROL_QOS)
+        self.command_pub = self.create_publisher(_COMMAND_TYPES[port.command_type], port.command_topic,
+                                                 CONTROL_OFFERED_QOS)
         out.command, out.command_again = raw_publish(self.command_pub, tap), self.command_pub.publish
         sub = self.create_subscription(JointState, port.state_topic, self._on_state, CONTROL_QOS, raw=port.raw)
         self._state_topic = sub.topic_name

@@ -99,7 +99,8 @@ from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_
 from has_control.wire.topics import CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, TRUE_STATE
 from has_control.nodes.live_tap import node_tap
 from has_control.nodes.managed import AUTOSTART, autostart, refuse, state_label
-from has_control.nodes.runtime import (CONTROL_QOS, node_main, publish_diagnostics, qos, raw_publish,
+from has_control.nodes.runtime import (CONTROL_OFFERED_QOS, CONTROL_QOS, node_main,
+                                       publish_diagnostics, qos, raw_publish,
                                        trigger_service)
 from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
 
@@ -244,13 +245,13 @@ class PlantNode(LifecycleNode):
         self.interface = value["interface"]
         ros2_control = self.interface == "ros2_control"      # a hardware driver's topics (docs/ros2_control.md)
         self.state_pub = self.create_publisher(JointState, value["joint_states_topic"] if ros2_control else STATE,
-                                               CONTROL_QOS)
+                                               CONTROL_OFFERED_QOS)
         self.clock_pub = self.create_publisher(Clock, CLOCK_TOPIC, qos(CLOCK_TOPIC))
         self._publish_state = raw_publish(self.state_pub, tap)
         self._publish_clock = raw_publish(self.clock_pub, tap)
         pubs = [self.state_pub, self.clock_pub]
         if cfg.noise.added_by == "plant":
-            pubs.append(self.create_publisher(JointState, TRUE_STATE, CONTROL_QOS))
+            pubs.append(self.create_publisher(JointState, TRUE_STATE, CONTROL_OFFERED_QOS))
             self._publish_true = raw_publish(pubs[-1], tap)
         self.process = PlantProcess(cfg, schedule, self, self.get_logger(), samples=int(value["samples"]),
                                     fallback=_other_forward if ros2_control else _other_layout,

@@ -20,18 +20,25 @@ from has_control.common.errors import HasControlError, shown
 from has_control.config.params_file import read_parameter_file
 from has_control.core.actuator import joint_state
 from has_control.core.params import Actuator
-from has_control.wire.topics import QOS, STATE, STATE_NAMES
+from has_control.wire.topics import QOS, RECORDING_QOS as TOPICS_RECORDING_QOS, STATE, STATE_NAMES, offered
 
 
-def qos(relative: str) -> QoSProfile:
-    """The QoS a run topic is offered with (:data:`has_control.wire.topics.QOS`)."""
-    depth, transient_local = QOS[relative]
+def _profile(depth: int, transient_local: bool) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if transient_local else DurabilityPolicy.VOLATILE)
 
 
-#: The control loop's state and command (see :data:`has_control.wire.topics.QOS`).
-CONTROL_QOS = qos(STATE)
+def qos(relative: str) -> QoSProfile:
+    """The QoS a run topic's writers offer (:func:`has_control.wire.topics.offered`)."""
+    return _profile(*offered(relative))
+
+
+#: What the control loop's readers take on state and command (see :data:`has_control.wire.topics.QOS`).
+CONTROL_QOS = _profile(*QOS[STATE])
+#: What the loop's writers offer on state and command (and the ros2_control layout's topics).
+CONTROL_OFFERED_QOS = qos(STATE)
+#: The recording QoS (:data:`has_control.wire.topics.RECORDING_QOS`): a reader outside the loop gets every sample.
+RECORDING_QOS = _profile(*TOPICS_RECORDING_QOS)
 
 
 def stamp(sample: int, step_ns: int) -> Time:

@@ -54,6 +54,29 @@ MISSED_COLUMNS = ("t", "u", "failsafe")
 QOS = {STATE: (1, False), TRUE_STATE: (1, False), COMMAND: (1, False), CLOCK_TOPIC: (10, False),
        REFERENCE: (10, False), CONTROLLER_STATE: (10, False), GAINS: (1, True)}
 
+#: The history the writers of the per-sample topics keep [messages], so that a
+#: reader outside the loop (a recorder in another process) that falls behind by
+#: up to this many samples still receives every one (reliable delivery resends
+#: from the writer's history). The loop's own readers keep the last one
+#: (:data:`QOS`): a stale state is never worth answering.
+RECORD_DEPTH = 1000
+#: The topics written every sample, offered with :data:`RECORD_DEPTH` (the
+#: ros2_control layout's JointState and command topics too).
+PER_SAMPLE = (STATE, TRUE_STATE, COMMAND, CLOCK_TOPIC, REFERENCE, CONTROLLER_STATE)
+#: **The recording QoS**: what an external recorder subscribes with to receive
+#: every sample of a run: reliable, keep-last :data:`RECORD_DEPTH`, volatile
+#: (docs/nodes.md, "Recording"). ``ros2 bag record`` takes it through
+#: ``--qos-profile-overrides-path`` (its default depth is 10).
+RECORDING_QOS = (RECORD_DEPTH, False)
+
+
+def offered(relative: str) -> tuple[int, bool]:
+    """(history depth, transient local) the writers of run topic ``relative`` offer
+    (reliable): :data:`QOS`, with :data:`RECORD_DEPTH` for the per-sample topics."""
+    depth, latched = QOS[relative]
+    return (max(depth, RECORD_DEPTH), latched) if relative in PER_SAMPLE else (depth, latched)
+
+
 #: Topics of a recorded run and their types.
 RUN_TOPICS = {STATE: JOINT_STATE, COMMAND: JOINT_STATE, CLOCK_TOPIC: CLOCK,
               REFERENCE: FLOAT64_ARRAY, CONTROLLER_STATE: FLOAT64_ARRAY, GAINS: FLOAT64_ARRAY}
