@@ -200,7 +200,8 @@ def controller_sample(data, mem, gains, ap, cp, rp, sp, seed, dt, step_ns, comma
 
 def warm_up() -> None:
     """Compile (or load from the cache) every sample function the nodes call,
-    for the argument types they pass, before anything joins the graph (and,
+    for the argument types they pass (test/test_cold_cache.py checks that a
+    node's first samples add none), before anything joins the graph (and,
     in ``has-control stack``, while Ctrl-C still ends the process quietly)."""
     cfg = Config()
     arr = EpisodeArrays.from_config(cfg)
@@ -210,8 +211,13 @@ def warm_up() -> None:
     encode_state(x, arr.plant, 0, step_ns, state, clock, scr)
     plant_sample(x, 0.0, arr.plant, cfg.episode.step, cfg.episode.y_limit, 1, step_ns, state, clock, scr)
     encode_measured(x, arr.plant, 1, step_ns, arr.sensor, arr.seed, state, clock, scr)
-    command_of(bytes(state), step_ns, scr)
-    controller_sample(bytes(state), np.zeros(CONTROLLER_MEMORY), np.array(cfg.gains.as_tuple()), arr.actuator,
-                      arr.adaptation, arr.reference, arr.sensor, arr.seed, cfg.episode.step, step_ns,
-                      COMMAND_LAYOUT.buffer(), CONTROLLER_STATE_LAYOUT.buffer(), REFERENCE_LAYOUT.buffer(),
-                      np.zeros((0, len(TRACE_COLUMNS))))
+    command = COMMAND_LAYOUT.buffer()
+    # serialized bytes (the has_control port, the plant), and the preallocated buffers the
+    # ros2_control port encodes a state into and reads its command from
+    for data in (bytes(state), state):
+        controller_sample(data, np.zeros(CONTROLLER_MEMORY), np.array(cfg.gains.as_tuple()), arr.actuator,
+                          arr.adaptation, arr.reference, arr.sensor, arr.seed, cfg.episode.step, step_ns,
+                          command, CONTROLLER_STATE_LAYOUT.buffer(), REFERENCE_LAYOUT.buffer(),
+                          np.zeros((0, len(TRACE_COLUMNS))))
+    for data in (bytes(state), command):
+        command_of(data, step_ns, scr)
