@@ -19,7 +19,7 @@ from has_control.nodes.plant_node import PlantNode
 pytestmark = [pytest.mark.ros]
 
 #: An external recorder: every message of a topic, by the recording QoS, in a process of its own;
-#: prints the number of distinct samples (by stamp) and of messages once it has all or is told to stop.
+#: prints the number of distinct samples (by stamp) and of messages once it has them all or the run is over.
 RECORDER = """
 import struct, sys, time
 import rclpy
@@ -29,17 +29,19 @@ from has_control.nodes.runtime import RECORDING_QOS
 topic, n, step = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 rclpy.init()
 node = rclpy.create_node("external_recorder")
-seen, count = set(), [0]
+seen, count, last = set(), [0], [time.monotonic()]
 def take(data):
     sec, nsec = struct.unpack_from("<iI", data, 4)
     seen.add((sec * 1_000_000_000 + nsec) // step)
     count[0] += 1
+    last[0] = time.monotonic()
 node.create_subscription(JointState, topic, take, RECORDING_QOS, raw=True)
 ex = EventsExecutor()
 ex.add_node(node)
 print("ready", flush=True)
 end = time.monotonic() + 900
-while time.monotonic() < end and len(seen) < n:
+# until every sample is in, or the last one is and nothing came for 5 s (nothing more will)
+while time.monotonic() < end and len(seen) < n and not (n - 1 in seen and time.monotonic() - last[0] > 5.0):
     ex.spin_once(timeout_sec=0.1)
 print(len(seen), count[0], flush=True)
 """
