@@ -258,3 +258,37 @@ def test_plant_lifecycle_runs_only_while_active(context):
         ex.shutdown()
         for node in (plant, controller, operator):
             node.destroy_node()
+
+
+def test_plant_start_after_an_episode_runs_an_episode_and_a_reset_plant_meets_fresh_estimates(context):
+    """#30: ~/start after a finished episode ran one sample while answering "episode
+    started"; after ~/reset the controller's estimates carried over into the new run."""
+    n = 300
+    ex = EventsExecutor(context=context)
+    plant = PlantNode(context=context, parameter_overrides=[Parameter("samples", value=n),
+                                                            Parameter("keep_alive", value=True)])
+    controller = ControllerNode(context=context)
+    controller.record_trace(n)
+    operator = rclpy.create_node("operator", context=context)
+    for node in (plant, controller, operator):
+        ex.add_node(node)
+    start, reset = (operator.create_client(Trigger, f"/plant/{s}") for s in ("start", "reset"))
+    try:
+        assert _spin_until(ex, plant.connected, 20)
+        assert _call(ex, start, Trigger.Request()).success
+        assert _spin_until(ex, lambda: plant.finished, 60) and plant.sample == n
+        assert _call(ex, start, Trigger.Request()).message == "episode started"
+        assert _spin_until(ex, lambda: plant.finished and plant.sample > n, 60)
+        _spin_until(ex, lambda: False, 0.2)
+        assert plant.sample == 2 * n                                   # a whole episode, not one sample
+        moved = controller.a1_hat
+        assert moved != 2600.0
+        assert _call(ex, reset, Trigger.Request()).success and plant.sample == 0
+        assert _call(ex, start, Trigger.Request()).success
+        assert _spin_until(ex, lambda: plant.finished and plant.sample == n, 60)
+        ref = simulate(with_horizon(Config(), 1.5))
+        np.testing.assert_array_equal(controller.trace, ref.data[:n])   # the new run from a(0): the library's
+    finally:
+        ex.shutdown()
+        for node in (plant, controller, operator):
+            node.destroy_node()
