@@ -6,6 +6,7 @@ from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from has_control.config import with_horizon
 from has_control.core.episode import Col, simulate
@@ -395,12 +396,16 @@ def _ros2_control_loop(cfg, samples, drop_every=0):
     return plant, link.port, controller, got
 
 
-def test_the_plant_in_its_ros2_control_layout_runs_the_library_run_with_the_ros2_control_port():
-    """/joint_states out, Float64MultiArray [u] in (one command answers the latest state): simulate's run."""
+@pytest.mark.parametrize("delay", [0, 3])
+def test_the_plant_in_its_ros2_control_layout_runs_the_library_run_with_the_ros2_control_port(delay):
+    """/joint_states out, Float64MultiArray [u] in (one command answers the latest state): simulate's run,
+    also with a transport delay of the command injected (plant.delay [samples])."""
     cfg, n = with_horizon(Config(), 1.5), 2000
-    plant, port, controller, got = _ros2_control_loop(cfg, n)
+    delayed = replace(cfg, plant=replace(cfg.plant, delay=delay))
+    plant, port, controller, got = _ros2_control_loop(delayed, n)
     assert plant.finished and plant.sample == n and len(got) == n
-    np.testing.assert_array_equal(controller.trace, simulate(cfg).data[:n])
+    np.testing.assert_array_equal(controller.trace, simulate(delayed).data[:n])
+    assert np.array_equal(controller.trace, simulate(cfg).data[:n]) == (delay == 0)    # the delay acted
     assert plant.conflicts.count == 0 and port.missing == 0 and port.stale == 0
 
 
