@@ -292,3 +292,29 @@ def test_plant_start_after_an_episode_runs_an_episode_and_a_reset_plant_meets_fr
         ex.shutdown()
         for node in (plant, controller, operator):
             node.destroy_node()
+
+
+def test_two_publishers_on_joint_states_are_conflicts_not_consecutive_samples(context):
+    """Two ros2_control systems on /joint_states with the same clock: each sample is answered
+    once, the other system's state is counted as a conflict (and stale), never answered (#30)."""
+    ex = EventsExecutor(context=context)
+    controller = ControllerNode(context=context, parameter_overrides=ROS2_CONTROL)
+    a, b = (rclpy.create_node(name, context=context) for name in ("system_a", "system_b"))
+    pubs = [n.create_publisher(JointState, "/joint_states", QoSProfile(depth=10)) for n in (a, b)]
+    for node in (controller, a, b):
+        ex.add_node(node)
+    x = Config().actuator.initial_state()
+    epoch, step = time.time_ns(), 300_000
+    try:
+        assert _spin_until(ex, lambda: all(p.get_subscription_count() for p in pubs), 20)
+        for i in range(10):
+            pubs[0].publish(_joint_state(x, epoch + i * step))
+            _spin_until(ex, lambda: controller.states_answered == i + 1, 10)      # the reader keeps the last one
+            pubs[1].publish(_joint_state([x[0] + 1e-3, x[1], x[2], x[3]], epoch + i * step))
+            _spin_until(ex, lambda: controller.conflicts == i + 1 and controller.states_answered == i + 1, 10)
+            assert (controller.conflicts, controller.states_answered, controller.port.repeated) == (i + 1, i + 1, 0), i
+        assert controller.port.stale == 10 and controller.port.missing == 0
+    finally:
+        ex.shutdown()
+        for node in (controller, a, b):
+            node.destroy_node()
