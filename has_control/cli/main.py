@@ -14,7 +14,7 @@ import threading
 from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
-from has_control import raise_interrupt
+from has_control.common.interrupts import raise_interrupt
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
 from has_control.cli.node_help import print_help, wants_help
 from has_control.common.errors import HasControlError

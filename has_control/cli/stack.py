@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from has_control import quiet_interrupts
+from has_control.common.interrupts import quiet_interrupts
 from has_control.cli.args import add_config, add_json, gains_arg, load, namespace, port, positive_int
 from has_control.cli.status import StatusLine
 from has_control.common.errors import HasControlError
