@@ -241,7 +241,7 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
     stamps, rows, cache = np.zeros(len(datas), np.int64), np.zeros((len(datas), len(mapping))), {}
     for k, d in enumerate(datas):
         try:
-            lay = cdr.joint_state_layout(d)
+            lay = cdr.parse_joint_state_layout(d)
             ok = lay.size <= len(d)
         except _MALFORMED:
             ok = False
