@@ -109,7 +109,7 @@ class Recording:
 
 
 def has_topic(bag: Bag, relative: str, msgtype: str) -> bool:
-    return any((t == "/" + relative or t.endswith("/" + relative)) and ty == msgtype for t, ty in bag.types.items())
+    return bool(bag.topics_named(relative, msgtype))
 
 
 def layout_of(bag: Bag, reading: Reading = Reading(), true_state: bool = False) -> tuple[str, str, str | None]:
