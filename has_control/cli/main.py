@@ -16,7 +16,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from has_control.common.interrupts import raise_interrupt
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
-from has_control.cli.node_help import print_help, wants_help
+from has_control.cli.node_help import NODES, print_help, wants_help
 from has_control.common.errors import HasControlError
 
 #: The subcommands, in the order ``--help`` lists them, and their one-line help; each is the module
@@ -36,16 +36,13 @@ COMMANDS = {
     "deploy": "deploy tuned gains in steps under a watchdog that falls back to the safe gains",
 }
 
-#: Node subcommands: the node's module under has_control.nodes; the rest of the line goes to ROS.
-NODES = {"plant": "plant_node", "controller": "controller_node", "tuner": "tuner_node"}
-
 
 def run_node(name: str, ros_args: list[str]) -> int:
     """Run one node as this process (for machines without the ros2 command);
     everything after the node's name goes to ROS (``--ros-args -p k:=v ...``)."""
     if wants_help(ros_args):
         return print_help(name)
-    import_module(f"has_control.nodes.{NODES[name]}").main(args=[f"has-control {name}", *ros_args])
+    import_module(f"has_control.nodes.{NODES[name][0]}").main(args=[f"has-control {name}", *ros_args])
     return 0
 
 
