@@ -11,8 +11,9 @@ GIL with it, and the server's threads are the viewer's.
 
 Run as ``python -m has_control.nodes.live_process RING_FD BIG_FD PORT HOST NAME WHAT``
 by :class:`LiveViewProcess` (the rings' file descriptors are inherited: memfd,
-no name in /dev/shm); it answers on stdout (``ok PORT`` or ``error LINE``) and takes commands on stdin: ``topic ID NAME`` (answered ``channel
-ID`` once the channel exists), ``wait SECONDS`` (answered ``subscribed`` or
+no name in /dev/shm); it answers on stdout (``ok PORT`` or ``error LINE``)
+and takes commands on stdin: ``topic ID NAME`` (answered ``channel ID`` once
+the channel exists), ``wait SECONDS`` (answered ``subscribed`` or
 ``timeout``), ``close``.
 """
 from __future__ import annotations
@@ -124,9 +125,10 @@ class LiveViewProcess:
     its parent's pipe closes."""
 
     def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", name: str = "has_control",
-                 what: str = "--foxglove"):
+                 what: str = "--foxglove", warn: Callable[[str], None] | None = None):
         if port != 0:
             check_port(port, what)
+        self._warn = warn or _warn
         self.ring, self.big = Ring.create(), Ring.create(BIG_SLOTS, BIG_SLOT)
         self.channels: dict[str, int] = {}
         self.ended: str | None = None            # why the viewer ended before close, if it did
@@ -199,6 +201,7 @@ class LiveViewProcess:
         if died is not None:
             how = f"signal {-died}" if died < 0 else f"status {died}"
             self.ended = f"the live view's viewer process ended early ({how}); the run went on without it"
+            self._warn(self.ended)
         self._proc = None
         self.ring.close()
         self.big.close()
@@ -208,6 +211,10 @@ class LiveViewProcess:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _warn(text: str) -> None:
+    print(f"live view: {text}", file=sys.stderr, flush=True)
 
 
 def _viewer(ring_fd: int, big_fd: int, port: int, host: str, name: str, what: str) -> None:

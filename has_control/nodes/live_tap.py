@@ -26,7 +26,7 @@ def node_tap(node, tap=None):
         check_port(port, what)
     except HasControlError as exc:
         raise ValueError(f"{exc} or 0 (off)") from None
-    view = LiveViewProcess(port, name=node.get_fully_qualified_name(), what=what)
+    view = LiveViewProcess(port, name=node.get_fully_qualified_name(), what=what, warn=node.get_logger().warning)
     node.context.on_shutdown(lambda: view.close())     # a bound method would be held weakly
     tap_diagnostics(node, view.sink)                   # /diagnostics served too
     return tee(tap, view.sink), view
