@@ -36,7 +36,7 @@ from typing import Callable
 
 from has_control.common.errors import HasControlError
 from has_control.wire.topics import (CLOCK, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, GAINS, GAINS_COLUMNS,
-                                     JOINT_STATE, LAYOUTS, REFERENCE, REFERENCE_COLUMNS, RUN_TOPICS)
+                                     JOINT_STATE, LAYOUTS, QOS, REFERENCE, REFERENCE_COLUMNS, RUN_TOPICS)
 from has_control.bag import msgdef
 
 DEFAULT_PORT = 8765
@@ -49,6 +49,9 @@ NAMED = "/named"
 #: The run topics' types by the last part of their name (``gains``, ``state``,
 #: ...): a node's full topic names depend on its namespace and name; and the nodes' diagnostics.
 _TYPES = {**{rel.rsplit("/", 1)[-1]: ty for rel, ty in RUN_TOPICS.items()}, "diagnostics": DIAGNOSTIC_ARRAY}
+#: Topics offered transient local (the gains in force): the view logs their newest message again
+#: for a client that subscribes later (:meth:`LiveView.relatch`), as a late ROS subscriber gets it.
+_LATCHED = {rel.rsplit("/", 1)[-1] for rel, (_, transient_local) in QOS.items() if transient_local}
 #: The columns of each Float64MultiArray topic (by the last part of its name), served by name on TOPIC/named.
 _COLUMNS = {rel.rsplit("/", 1)[-1]: cols for rel, cols in
             ((CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS), (REFERENCE, REFERENCE_COLUMNS), (GAINS, GAINS_COLUMNS))}
@@ -108,6 +111,8 @@ class LiveView:
         self.channels: dict[str, object] = {}
         self.subscribed = threading.Event()      # a client has subscribed to a channel
         self._now = [0]                          # the newest simulation time served [ns]: /diagnostics' log time
+        self._latest: dict[str, tuple] = {}      # transient-local topics: their newest message (take, data)
+        self._subscriptions = [0, 0]             # subscriptions seen, and relatched for
         try:
             self.server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
                                                 server_listener=self)
@@ -118,7 +123,17 @@ class LiveView:
 
     def on_subscribe(self, client, channel) -> None:
         """The server's listener: a client subscribed to ``channel``."""
+        self._subscriptions[0] += 1
         self.subscribed.set()
+
+    def relatch(self) -> None:
+        """After a new subscription: the newest message of each transient-local
+        topic logged again (called by the viewer's loop, off the server's thread)."""
+        seen = self._subscriptions[0]
+        if seen != self._subscriptions[1]:
+            self._subscriptions[1] = seen
+            for take, data in list(self._latest.values()):
+                take(data)
 
     def on_unsubscribe(self, client, channel) -> None:
         """The server's listener: nothing to do."""
@@ -151,6 +166,17 @@ class LiveView:
         message as published, with its simulation time as log time [ns]."""
         log = self.channel(topic).base.log          # the SDK's call, past Channel.log's type checks
         rel = topic.rsplit("/", 1)[-1]
+        take = self._take(topic, rel, log)
+        if rel not in _LATCHED:
+            return take
+        latest = self._latest
+
+        def take_and_keep(data: bytes) -> None:
+            latest[topic] = (take, data)
+            take(data)
+        return take_and_keep
+
+    def _take(self, topic: str, rel: str, log) -> Callable[[bytes], None]:
         now = self._now
         if _TYPES[rel] == DIAGNOSTIC_ARRAY:
             def take(data: bytes) -> None:

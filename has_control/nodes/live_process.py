@@ -263,6 +263,7 @@ def _viewer(ring_fd: int, big_fd: int, port: int, host: str, name: str, what: st
             waiting = None
         for k, r in enumerate(rings):
             next_read[k] = r.read(next_read[k], take)
+        view.relatch()                                         # a new client gets the gains in force
 
 
 if __name__ == "__main__":
