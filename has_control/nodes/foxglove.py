@@ -194,6 +194,7 @@ class LiveView:
             offset, columns = _T_OFFSETS[rel], _COLUMNS.get(rel)
             values = struct.Struct(f"<{len(columns)}d").unpack_from if columns else None
             named = self.channels[topic + NAMED].base.log if columns else None
+            wanted = self.channels[topic + NAMED].has_sinks if columns else None   # a client subscribed to it
 
             def take(data: bytes) -> None:
                 try:
@@ -205,7 +206,7 @@ class LiveView:
                 log(data, log_ns)
                 if log_ns is not None:
                     now[0] = max(now[0], log_ns)
-                if named is not None:
+                if named is not None and wanted():           # JSON only for a client that reads it
                     try:
                         row = values(data, offset)
                     except struct.error:
