@@ -185,6 +185,8 @@ class NodeSignals:
             return
         for name in self.SIGNALS:
             sig = getattr(signal, name)
+            if signal.getsignal(sig) is signal.SIG_IGN:
+                continue                           # ignored by whoever started us (a background job): stays so
             self._previous[sig] = signal.signal(sig, self._loading)
 
     def _loading(self, signum, frame) -> None:
@@ -257,7 +259,10 @@ def node_main(args, make_node, serve) -> None:
             except KeyboardInterrupt:
                 interrupted = True
             finally:
-                node.get_logger().set_level(LoggingSeverity.ERROR)   # the stop's one line is the command's
+                if interrupted or signals.received:
+                    # the stop's one line is the command's: what a worker thread of the node (the tuner's
+                    # session) says while the node and the context close under it is not news
+                    node.get_logger().set_level(LoggingSeverity.FATAL)
                 executor.shutdown()
                 try:
                     node.destroy_node()
