@@ -248,6 +248,19 @@ def test_a_plant_interrupted_during_its_run_ends_in_one_line(domain_id):
         controller.kill()
 
 
+@pytest.mark.ros
+@pytest.mark.parametrize("moment", ["ready:", "iteration"])
+def test_a_tuner_interrupted_during_its_session_ends_in_one_line(domain_id, moment):
+    """SIGINT while the tuner's session thread works: no "tuning session failed:
+    InvalidHandle" as the node closes under it; its progress lines, then one line, 130."""
+    tuner = _node(domain_id, "tuner", "--ros-args", "-p", "swarm.iterations:=2000")
+    _wait_for(tuner, moment)
+    tuner.send_signal(signal.SIGINT)
+    err = tuner.communicate(timeout=60)[1]
+    lines = [line for line in err.strip().splitlines() if not line.startswith("[INFO]")]
+    assert tuner.returncode == 130 and lines == ["has-control: interrupted"], err[-2000:]
+
+
 # --- signals: a Dask run -----------------------------------------------------------------------------
 
 @pytest.mark.cluster
