@@ -48,24 +48,6 @@ def test_a_relative_namespace_records_under_its_absolute_name(context, tmp_path)
     assert bag.count("/sim0/state") == 5000 and bag.count("/sim0/command") >= 4999
 
 
-def test_the_foxglove_layout_plots_columns_that_exist():
-    import json
-    import re
-    from pathlib import Path
-    from has_control.wire.topics import CONTROLLER_STATE_COLUMNS, RUN_TOPICS
-    layout = json.loads((Path(__file__).resolve().parent.parent / "config/foxglove/has_control.json").read_text())
-    paths = [p for panel in layout["configById"].values() for p in panel.get("paths", [])]
-    assert len(paths) >= 7
-    sizes = {"/state.position": 3, "/state.effort": 3, "/command.position": 1,
-             "/controller/controller_state.data": len(CONTROLLER_STATE_COLUMNS)}
-    for p in paths:
-        field, index = re.fullmatch(r"(\S+)\[(\d+)\]", p["value"]).groups()
-        assert field.split(".")[0].lstrip("/") in RUN_TOPICS and int(index) < sizes[field]
-        assert "[" in p["label"]                              # a unit in every label
-    assert {CONTROLLER_STATE_COLUMNS[int(re.search(r"\[(\d)\]", p["value"]).group(1))]
-            for p in paths if "controller_state" in p["value"]} == {"e1", "x1d", "a1_hat", "a2_hat"}
-
-
 def test_replay_controller_tests_the_running_node_it_names(context, domain_id, tmp_path):
     """--controller NODE feeds the running node (a controller with other gains
     mismatches); --check-code is the in-process regression check."""
