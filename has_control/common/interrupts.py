@@ -7,7 +7,7 @@ import signal
 import threading
 
 
-def _exit_quietly_on_interrupt(signum, frame):
+def exit_quietly_on_interrupt(signum, frame):
     """Leave at once: an exception raised inside a C extension's import (numpy,
     numba) would be turned into an ImportError with a traceback."""
     os.write(2, b"has-control: interrupted\n")
@@ -33,7 +33,7 @@ class quiet_interrupts:
         defaults = {signal.SIGINT: (signal.default_int_handler,), signal.SIGTERM: (signal.SIG_DFL, raise_interrupt)}
         self.ours = {sig: signal.getsignal(sig) for sig, hs in defaults.items() if main and signal.getsignal(sig) in hs}
         for sig in self.ours:
-            signal.signal(sig, _exit_quietly_on_interrupt)
+            signal.signal(sig, exit_quietly_on_interrupt)
         return self
 
     def __exit__(self, *exc):

@@ -23,7 +23,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 
-from has_control import _exit_quietly_on_interrupt
+from has_control.common.interrupts import exit_quietly_on_interrupt
 from has_control.common.errors import HasControlError, shown
 from has_control.config.params_file import read_parameter_file
 from has_control.core.actuator import joint_state
@@ -190,7 +190,7 @@ class NodeSignals:
             self._previous[sig] = signal.signal(sig, self._loading)
 
     def _loading(self, signum, frame) -> None:
-        _exit_quietly_on_interrupt(signum, frame)
+        exit_quietly_on_interrupt(signum, frame)
 
     def _serving(self, signum, frame) -> None:
         self.received.append(signum)
