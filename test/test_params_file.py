@@ -49,8 +49,9 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
     controller, plant = ControllerNode(context=context), PlantNode(context=context)
     try:
         k1, kind, step = controller.describe_parameters(["gains.k1", "reference.kind", "simulation.step"])
-        assert "[1/s]" in k1.description and 0.0 < k1.floating_point_range[0].from_value < 1e-300
-        assert k1.floating_point_range[0].to_value == 1.0e6 and not k1.read_only
+        # (0, 1e6]: an open bound has no FloatingPointRange (it would need a subnormal Min, #30 item 6)
+        assert "[1/s]" in k1.description and k1.additional_constraints == "> 0 and <= 1e+06"
+        assert not k1.floating_point_range and not k1.read_only
         assert "sine" in kind.additional_constraints and "chirp" in kind.additional_constraints
         assert step.read_only and "[s]" in step.description
         mass, mode = plant.describe_parameters(["actuator.mass", "mode"])
@@ -58,6 +59,13 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
         assert mode.read_only and "realtime" in mode.additional_constraints
         from rclpy.parameter import Parameter
         assert not controller.set_parameters([Parameter("gains.k1", value=0.0)])[0].successful
+        refused = controller.set_parameters([Parameter("gains.k1", value=-1.0)])[0]
+        assert not refused.successful and "gains.k1 = -1" in refused.reason and "> 0 and <= 1e+06" in refused.reason
+        assert "e-308" not in refused.reason and controller.get_parameter("gains.k1").value > 0
+        assert controller.set_parameters([Parameter("gains.k1", value=300)])[0].successful     # a whole number
+        assert controller.get_parameter("gains.k1").value == 300.0 and controller._pending[0].gains.k1 == 300.0
+        damping, = plant.describe_parameters(["actuator.damping"])
+        assert damping.floating_point_range[0].from_value == 0.0           # >= 0: a closed range
     finally:
         controller.destroy_node()
         plant.destroy_node()
