@@ -60,7 +60,7 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
         from rclpy.parameter import Parameter
         assert not controller.set_parameters([Parameter("gains.k1", value=0.0)])[0].successful
         refused = controller.set_parameters([Parameter("gains.k1", value=-1.0)])[0]
-        assert not refused.successful and "gains.k1 = -1" in refused.reason and "> 0 and <= 1e+06" in refused.reason
+        assert not refused.successful and "gains.k1 = -1.0" in refused.reason and "> 0 and <= 1e+06" in refused.reason
         assert "e-308" not in refused.reason and controller.get_parameter("gains.k1").value > 0
         assert controller.set_parameters([Parameter("gains.k1", value=300)])[0].successful     # a whole number
         assert controller.get_parameter("gains.k1").value == 300.0 and controller._pending[0].gains.k1 == 300.0

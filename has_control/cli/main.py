@@ -12,7 +12,6 @@ import signal
 import sys
 import threading
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
 
 from has_control.common.interrupts import raise_interrupt
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
@@ -111,10 +110,8 @@ ROS_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "
 
 
 def _version() -> str:
-    try:
-        return version("has_control")
-    except PackageNotFoundError:                 # run from a source tree
-        return "0.1.0 (source tree)"
+    from has_control import __version__          # lazy: computed on first use (PEP 562)
+    return __version__
 
 
 def plant() -> int:

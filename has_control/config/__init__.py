@@ -3,7 +3,8 @@
 ``yaml_safe`` reads YAML as a parameter file needs it; ``params_file`` matches
 sections to nodes as rcl does; ``schema`` checks every key and builds a
 :class:`~has_control.core.params.Config`; ``scenario_files`` reads scenario
-sets; ``table`` holds each component's parameter facts (:class:`Param`); ``gains_file`` writes tuned gains as a ``--params-file``.
+sets; ``table`` holds each component's parameter facts (:class:`Param`);
+``gains_file`` writes tuned gains as a ``--params-file``.
 """
 from has_control.config.gains_file import gains_params_yaml, write_gains_params  # noqa: F401
 from has_control.config.params_file import (  # noqa: F401

@@ -201,10 +201,13 @@ def yaml_with_comments(text: str, params: Mapping[str, Param], root: str = "") -
     kept in this form, so the table is the one source of their comments."""
     out = []
     stack: list[tuple[int, str]] = []
+    column = 0                                  # where the last trailing comment began: new ones align to it
     for line in text.splitlines():
         m = _VALUE_LINE.match(line)
         bare = re.match(r"^(\s*)([A-Za-z_/*][\w/*]*):\s*(#.*)?$", line)
         if bare:
+            if bare.group(3):
+                column = line.index("#")
             indent = len(bare.group(1))
             while stack and stack[-1][0] >= indent:
                 stack.pop()
@@ -224,6 +227,7 @@ def yaml_with_comments(text: str, params: Mapping[str, Param], root: str = "") -
             out.append(line)
             continue
         head = f"{m.group('indent')}{m.group('key')}:{m.group('gap')}{m.group('value')}"
-        pad = m.group("pad") if m.group("comment") else "  "
+        pad = m.group("pad") if m.group("comment") else " " * max(1, column - len(head))
+        column = len(head) + len(pad)
         out.append(f"{head}{pad}# {p.comment()}")
     return "\n".join(out) + ("\n" if text.endswith("\n") else "")
