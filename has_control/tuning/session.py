@@ -169,9 +169,10 @@ def _locked(d: Path) -> str | None:
 
 
 def write_lanes(writer, lanes: list[dict]) -> None:
-    """The lanes' parameters as read back (one JSON message on ``/tuner/lanes``) into an open session bag."""
+    """The lanes' parameters as read back (one JSON message ``{"lanes": [{"lane", "controller",
+    "plant"}]}`` on ``/tuner/lanes``) into an open session bag."""
     writer.add_topic(LANES, STRING, QosSpec(depth=10))
-    writer.write(LANES, time.time_ns(), _string(json.dumps(lanes, default=_plain_json)))
+    writer.write(LANES, time.time_ns(), _string(json.dumps({"lanes": lanes}, default=_plain_json)))
 
 
 def _plain_json(value):
