@@ -86,7 +86,7 @@ OWN_PARAMETERS = table((
     Param("plant", "str", "plant", text="the plant's node name within a lane", read_only=True),
     Param("record", "str", "", text="a directory: the session bag, gains.yaml and (graph) one bag per episode; "
           "empty: none kept"),
-    Param("force", "bool", False, text="record: replace a session already in the directory (else ~/start "
+    Param("force", "bool", False, text="record: replace a session the directory holds (else ~/start "
           "refuses)"),
     Param("resume", "str", "", text="a directory of an interrupted session to resume"),
     Param("episode_timeout", "double", 120.0, "s of wall time", "graph: an episode not finished after this long "
