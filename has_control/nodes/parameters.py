@@ -19,6 +19,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from has_control.common.errors import ConfigError
 from has_control.config import CONFIG_TABLE, Param, build_config, config_parameters, load_config, refusal
 from has_control.core.params import PLANT_OVERRIDES, Config
 
@@ -54,11 +55,18 @@ def declare_table(node: Node, params: Iterable[Param], values: Mapping[str, Any]
 
 
 def coerce_overrides(node: Node, params: Iterable[Param]) -> None:
-    """The node's start-up overrides (``-p k:=300``, a params file) of a whole
-    number for a double parameter, made that double before it is declared."""
+    """The node's start-up overrides (``-p k:=v``, a params file) before they are
+    declared: one outside a range the descriptor carries (which rclpy would refuse
+    with its own exception) is one ConfigError line naming the parameter (others are
+    checked at configure, where a managed node stays unconfigured); a whole number
+    for a double parameter is made that double."""
     overrides = node._parameter_overrides          # rclpy keeps them here until declared
     for p in params:
         given = overrides.get(p.name)
+        ranged = descriptor(p).floating_point_range or descriptor(p).integer_range
+        reason = refusal({p.name: p}, p.name, given.value) if given is not None and ranged else None
+        if reason is not None:
+            raise ConfigError(f"parameter of {node.get_fully_qualified_name()}: {reason}")
         if given is not None and p.type in ("double", "double[]"):
             value = p.coerce(given.value)
             if value != given.value or type(value) is not type(given.value):
