@@ -103,22 +103,10 @@ _API = {
 }
 
 
-def _version() -> str:
-    """The installed distribution's version (its one home is setup.py's ``version``, which
-    ``package.xml`` repeats); run from a source tree, setup.py's, read."""
-    from importlib.metadata import PackageNotFoundError, version     # lazy: only __version__ needs it
-    try:
-        return version("has_control")
-    except PackageNotFoundError:
-        import re                                                      # lazy: a source tree only
-        setup = Path(__file__).resolve().parent.parent / "setup.py"
-        m = re.search(r'version="([^"]+)"', setup.read_text()) if setup.is_file() else None
-        return m.group(1) if m else "unknown"
-
-
 def __getattr__(name: str):
-    if name == "__version__":
-        globals()[name] = value = _version()
+    if name == "__version__":                    # setup.py's version, one home
+        from has_control.common.version import package_version     # lazy: on first use only (PEP 562)
+        globals()[name] = value = package_version()
         return value
     module = _API.get(name)
     if module is None:
