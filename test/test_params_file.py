@@ -69,3 +69,25 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
     finally:
         controller.destroy_node()
         plant.destroy_node()
+
+
+@pytest.mark.ros
+def test_a_whole_number_for_a_double_is_taken_at_start_up_and_live_settings_apply(context):
+    """#30 item 6: -p gains.k1:=300 (an integer) starts the controller with 300.0; a setting the
+    node accepts at runtime takes effect (publish_internals, failsafe_samples), none is ignored."""
+    from rclpy.parameter import Parameter
+    from has_control.nodes.plant_node import PlantNode
+    controller = ControllerNode(context=context, parameter_overrides=[Parameter("gains.k1", value=300)])
+    plant = PlantNode(context=context, parameter_overrides=[Parameter("actuator.mass", value=1600)])
+    try:
+        assert controller.get_parameter("gains.k1").value == 300.0 and controller.k[0] == 300.0
+        assert plant.get_parameter("actuator.mass").value == 1600.0
+        assert controller.set_parameters([Parameter("publish_internals", value=False)])[0].successful
+        assert controller._outputs.publish_internals is False
+        assert plant.set_parameters([Parameter("failsafe_samples", value=3)])[0].successful
+        assert plant.failsafe_samples == 3
+        bad = plant.set_parameters([Parameter("failsafe_samples", value=-1)])[0]
+        assert not bad.successful and plant.failsafe_samples == 3
+    finally:
+        controller.destroy_node()
+        plant.destroy_node()

@@ -221,3 +221,48 @@ def test_plant_start_on_an_inactive_plant_answers_failure(context):
         ex.shutdown()
         plant.destroy_node()
         client.destroy_node()
+
+
+HOSTILE = [float("nan"), float("inf"), -1.0, 0.0, 1e300, -1, 0, 10**12, True, "garbage", "", "cvar:7",
+           "nope.yaml", [], [1.0, 2.0], [1e9, 1e9, 1e9], [0.0, 0.0, 0.0], ["a"]]
+
+
+def test_the_tuner_table_never_refuses_what_tune_takes():
+    """One table per component (#28 item 4): every swarm.*/restarts.* key is in it, and a value the
+    table refuses is one the command line's check (tuning_from_parameters) refuses too."""
+    from has_control.common.errors import ConfigError
+    from has_control.config import refusal
+    from has_control.tuning.parameters import TUNING_TABLE
+    from has_control.tuning.tuner import tuning_from_parameters, tuning_parameters
+    assert set(TUNING_TABLE) == set(tuning_parameters(load_tuning()))
+    for key in TUNING_TABLE:
+        for value in HOSTILE:
+            if refusal(TUNING_TABLE, key, value) is None:
+                continue
+            with pytest.raises(ConfigError):
+                tuning_from_parameters({key: value}, base=load_tuning())
+
+
+def test_hostile_runtime_parameters_leave_a_tuner_that_starts(context):
+    """#31 (fuzz the tuner node's runtime parameters): any value of any parameter is either
+    refused with a reason or accepted, and the accepted state always passes the ~/start checks."""
+    import random
+    from has_control.nodes.tuner_node import OWN_PARAMETERS
+    _, tuner = _tuner(context)
+    rng = random.Random(5)
+    names = [n for n in tuner._parameters if n in OWN_PARAMETERS or n.startswith(("swarm.", "restarts.",
+                                                                                    "simulation.", "gains."))]
+    outcomes = []
+    try:
+        for name in names:
+            for value in rng.sample(HOSTILE, 8):
+                try:
+                    res = tuner.set_parameters([Parameter(name, value=value)])[0]
+                except (TypeError, ValueError):            # rclpy: not a parameter type (e.g. a mixed list)
+                    continue
+                assert res.successful or res.reason, (name, value)
+                outcomes.append(res.successful)
+                tuner.read_settings()                      # raises if an accepted value broke the settings
+    finally:
+        tuner.destroy_node()
+    assert len(names) > 40 and 10 < sum(outcomes) < len(outcomes) - 100

@@ -187,7 +187,7 @@ class ControllerNode(LifecycleNode):
         out.command, out.command_again = raw_publish(self.command_pub, tap), self.command_pub.publish
         sub = self.create_subscription(JointState, port.state_topic, self._on_state, CONTROL_QOS, raw=port.raw)
         self._state_topic = sub.topic_name
-        self.publish_internals = out.publish_internals
+        self.publish_internals, self._outputs = out.publish_internals, out
         timer = self.create_timer(1.0, self._diagnose)
         self._entities = [sub, timer, self.command_pub, self.internals_pub, self.reference_pub, self.gains_pub,
                           self.diagnostics_pub]
@@ -239,19 +239,23 @@ class ControllerNode(LifecycleNode):
 
     # --- parameters --------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
+        """Checked by the tables and the core; the old values stay on a refusal. Accepted:
+        the law's parameters from the next sample (pending), ``publish_internals`` too."""
         reason = check_changes(OWN_PARAMETERS, params)
         if reason is not None:
             return SetParametersResult(successful=False, reason=reason)
         changes = {p.name: p.value for p in params if p.name.startswith(PREFIXES)}
-        if not changes or self.process is None:
-            return SetParametersResult(successful=True)
-        try:
-            cfg = config_from_node(self, PREFIXES, overrides=changes)
-        except ConfigError as exc:
-            reason = str(exc)
-            self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
-            return SetParametersResult(successful=False, reason=reason)
-        self.process.propose(cfg)               # pending: applied at the next sample
+        if changes and self.process is not None:
+            try:
+                cfg = config_from_node(self, PREFIXES, overrides=changes)
+            except ConfigError as exc:
+                reason = str(exc)
+                self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
+                return SetParametersResult(successful=False, reason=reason)
+            self.process.propose(cfg)               # pending: applied at the next sample
+        for p in params:
+            if p.name == "publish_internals" and self.process is not None:
+                self.publish_internals = self._outputs.publish_internals = bool(p.value)
         return SetParametersResult(successful=True)
 
     # --- control loop: read -> update -> write (the port) -------------------------

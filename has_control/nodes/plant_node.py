@@ -106,7 +106,8 @@ OWN_PARAMETERS = table((
           read_only=True),
 ))
 #: Parameters that change a running plant: where each lives in the process.
-LIVE = {"samples": "samples", "command_timeout": "schedule.timeout", "startup_timeout": "schedule.startup_timeout"}
+LIVE = {"samples": "samples", "command_timeout": "schedule.timeout", "startup_timeout": "schedule.startup_timeout",
+        "failsafe_samples": "schedule.failsafe_samples"}
 
 
 class _Of:

@@ -27,7 +27,20 @@ session bag ``record/session``, the best gains as a ``--params-file``
 ``record/gains.yaml`` and, for graph evaluation, one bag per episode under
 ``record/episodes``; empty: episodes go to a temporary
 directory), ``resume`` (a directory of an interrupted session),
-``episode_timeout`` [s of wall time], ``log_every`` (log every n-th iteration).
+``episode_timeout`` [s of wall time], ``log_every`` (log every n-th iteration),
+``force`` (``record``: replace a session there), ``validation_tolerance``
+(the graph's J of the best gains against the library's, relative). Every
+parameter is described, checked and declared from a table
+(:data:`TUNER_TABLE`: the model's, the tuning's and the tuner's own); a change
+is checked when set, with the CLI's checks, and refused with the reason (the
+old value stays); an accepted one takes effect at the next ``~/start``, which
+reads the parameters again and refuses a known conflict at once (a session
+in ``record`` without ``force``, nothing to ``resume``). ``lanes``,
+``controller``, ``plant`` and ``autostart`` are read-only. Before the
+validation the lanes' parameters are read back and stored in the session bag
+(``/tuner/lanes``); a graph J that differs from the library's beyond the
+tolerance is a warning, ``agrees: false`` in the result's ``validation`` block
+(``tune.json``, ``~/status``) and a ``disagrees`` status (docs/nodes.md).
 Topic ``~/progress`` (std_msgs/Float64MultiArray, its dimension labelled
 with the columns of :data:`has_control.wire.topics.PROGRESS_COLUMNS`):
 [iteration, best J, k1, k2, k3 [1/s], evaluations, elapsed [s], ETA [s]],
