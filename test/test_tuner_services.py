@@ -250,8 +250,8 @@ def test_hostile_runtime_parameters_leave_a_tuner_that_starts(context):
     from has_control.nodes.tuner_node import OWN_PARAMETERS
     _, tuner = _tuner(context)
     rng = random.Random(5)
-    names = [n for n in tuner._parameters if n in OWN_PARAMETERS or n.startswith(("swarm.", "restarts.",
-                                                                                    "simulation.", "gains."))]
+    fuzzed = ("swarm.", "restarts.", "simulation.", "gains.")
+    names = [n for n in tuner._parameters if n in OWN_PARAMETERS or n.startswith(fuzzed)]
     outcomes = []
     try:
         for name in names:
