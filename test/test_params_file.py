@@ -91,3 +91,27 @@ def test_a_whole_number_for_a_double_is_taken_at_start_up_and_live_settings_appl
     finally:
         controller.destroy_node()
         plant.destroy_node()
+
+
+@pytest.mark.ros
+def test_every_node_parameter_comes_from_a_table(context):
+    """#28 item 4: a node declares nothing that its component's table does not hold (rclpy's
+    use_sim_time and start_type_description_service, the live view's foxglove_port aside), and
+    each descriptor is the table's."""
+    from has_control.config import CONFIG_TABLE
+    from has_control.nodes import controller_node, plant_node, tuner_node
+    from has_control.nodes.parameters import descriptor
+    extra = {"use_sim_time", "start_type_description_service", "foxglove_port"}
+    for module, cls in ((plant_node, "PlantNode"), (controller_node, "ControllerNode"),
+                        (tuner_node, "TunerNode")):
+        node = getattr(module, cls)(context=context)
+        try:
+            tables = {**CONFIG_TABLE, **getattr(module, "TUNER_TABLE", {}), **module.OWN_PARAMETERS}
+            names = set(node._parameters) - extra
+            assert names <= set(tables), sorted(names - set(tables))
+            for name in names:
+                desc = node.describe_parameter(name)
+                assert desc.description == tables[name].comment() and desc.description, name
+                assert desc.additional_constraints == descriptor(tables[name]).additional_constraints, name
+        finally:
+            node.destroy_node()
