@@ -148,5 +148,3 @@ def plain(value: Any) -> Any:
         return value.tolist()
     return value
 
-
-_plain = plain
