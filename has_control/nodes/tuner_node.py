@@ -64,7 +64,6 @@ from std_srvs.srv import Trigger
 
 from has_control.bag import score_bag
 from has_control.common.errors import ConfigError, HasControlError
-from has_control.common.json_numbers import to_json
 from has_control.config import CONFIG_TABLE, Param, config_parameters, refusal, table
 from has_control.core.episode import simulate
 from has_control.tuning.parameters import TUNING_TABLE
@@ -75,12 +74,11 @@ from has_control.nodes.lanes import GraphEvaluator, Lane
 from has_control.wire.topics import PROGRESS_LAYOUT
 from has_control.nodes.runtime import node_main, spin
 from has_control.tuning.session import conflict, rewrite_result, run_session, write_lanes
+from has_control.tuning.validation import (VALIDATION_TOLERANCE, disagreement_status, lane_differences,
+                                           validation_block, validation_line)
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "cost.", "metrics.", "plant.", "noise.")
 EVALUATORS = ("graph", "batch")
-#: Relative difference between the graph's J and the library's J of the best gains above which the
-#: validation disagrees (graph = library bit for bit when the lanes run the tuner's model and miss nothing).
-VALIDATION_TOLERANCE = 1e-6
 #: With evaluator batch, how long to look for the (optional) lanes once the tuning is done [s].
 OPTIONAL_LANES_WAIT = 2.0
 #: The tuner's own parameters (its table; the model's and the tuning's are CONFIG_TABLE's and TUNING_TABLE's).
@@ -198,31 +196,8 @@ class TunerNode(Node):
 
     # --- parameters: checked when set, read at ~/start ---------------------------
     def read_settings(self, changes: dict | None = None) -> Settings:
-        """The session's settings from the parameters (with ``changes`` over them),
-        through the checks ``has-control tune`` makes; a ConfigError line names the culprit."""
-        changes = {k: plain(v) for k, v in (changes or {}).items()}
-        where = f"parameter of {self.get_fully_qualified_name()}"
-
-        def value(name):
-            return changes[name] if name in changes else plain(self.get_parameter(name).value)
-        for name in OWN_PARAMETERS:
-            reason = refusal(OWN_PARAMETERS, name, value(name))
-            if reason is not None:
-                raise ConfigError(f"{where}: {reason}")
-        cfg = config_from_node(self, PREFIXES, overrides={k: v for k, v in changes.items() if k.startswith(PREFIXES)})
-        flat = {k: value(k) for k in TUNING_TABLE}
-        tuning = tuning_from_parameters(flat, {k: where for k in flat})
-        evaluator = value("evaluator")
-        path, how = value("scenarios"), value("aggregate")
-        if path and evaluator == "graph":
-            raise ConfigError(f"parameter scenarios = {path!r}: needs evaluator batch (the lanes run one plant)")
-        # checked as tune's --scenarios/--aggregate; "mean" (the default) without scenarios is the nominal episode
-        tuning = robust_tuning(tuning, cfg, path, how if path or how != "mean" else None,
-                               ("parameter scenarios", "parameter aggregate"))
-        return Settings(cfg, tuning, evaluator, value("record") or None, value("resume") or None,
-                        bool(value("force")), float(value("episode_timeout")), bool(value("validate_best")),
-                        float(value("validation_tolerance")), bool(value("keep_episodes")),
-                        int(value("log_every")), float(value("lane_timeout")))
+        """The session's settings from the parameters (with ``changes`` over them): :func:`read_settings`."""
+        return read_settings(self, changes)
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         """A change is checked now, with every other parameter (refused with the reason,
@@ -300,10 +275,7 @@ class TunerNode(Node):
             if validation.get("agrees", True):
                 self.status = f"finished: best k = {gains}, J = {self.result['J']}"
             else:
-                self.status = (f"disagrees: best k = {gains}, batch J = {self.result['J']}, but the graph's "
-                               f"J = {validation['J']} against the library's {validation['library_J']} "
-                               f"(relative difference {validation['relative_difference']:.3g} > tolerance "
-                               f"{validation['tolerance']:g}); see the lanes' parameters in the result")
+                self.status = disagreement_status(self.result["gains"], self.result["J"], validation)
         except Cancelled:
             self.status = "cancelled"
             self.get_logger().warning("session cancelled (~/cancel); a recorded one resumes with resume:=DIR")
@@ -351,7 +323,7 @@ class TunerNode(Node):
             keep = bool(directory) and s.keep_episodes
             episodes = Path(directory) / "episodes" if keep else scratch
             evaluator = GraphEvaluator(self.lanes, episodes, s.episode_timeout, keep, check=self._check_cancel,
-                                       announce=lambda cfg: self._announce_graph(cfg, keep, episodes))
+                                       announce=lambda cfg: announce_graph(self, cfg, keep, episodes))
         found = {}
 
         def optional_lanes() -> bool:
@@ -431,58 +403,62 @@ class TunerNode(Node):
 
     def _compare(self, validation, cfg, best, lanes: list[dict], tolerance: float) -> dict:
         """The graph's validation against the library's J of the same gains on the tuner's
-        model; a warning (and ``agrees`` false) beyond ``tolerance``, naming the lanes'
-        parameters that differ from the tuner's."""
-        log = self.get_logger()
-        library = simulate(cfg, best).score.J
-        graph = validation.J
-        if graph == library or (math.isinf(graph) and math.isinf(library)):
-            diff = 0.0
+        model (:mod:`has_control.tuning.validation`), logged (a warning beyond ``tolerance``)."""
+        block = validation_block(validation.as_json(), validation.J, simulate(cfg, best).score.J,
+                                 lane_differences(config_parameters(cfg), lanes), tolerance)
+        if block["agrees"]:                      # (rclpy: one severity per call site)
+            self.get_logger().info(validation_line(block, best))
         else:
-            diff = abs(graph - library) / abs(library) if library and math.isfinite(library) else math.inf
-        mine = config_parameters(cfg)
-        differ = []
-        for lane in lanes:
-            for role in ("controller", "plant"):
-                for key, v in (lane.get(role) or {}).items():
-                    if key in mine and not key.startswith("gains.") and _differs(v, mine[key]):
-                        differ.append(f"{lane['lane']} {role}: {key} = {v!r} (the tuner's {mine[key]!r})")
-        agrees = diff <= tolerance
-        out = {**validation.as_json(), "library_J": to_json(library), "relative_difference": to_json(diff),
-               "tolerance": tolerance, "agrees": agrees, "lane_differences": differ}
-        line = (f"validated k = {_k(best)} through the graph: J = {graph:.6e} (the library's J of these gains "
-                f"{library:.6e}, relative difference {diff:.3g})")
-        if agrees:
-            log.info(line)
-        else:
-            log.warning(f"{line}: more than the tolerance {tolerance:g}"
-                        + (f"; the lanes differ from the tuner's model: {'; '.join(differ[:5])}" if differ else ""))
-        return out
+            self.get_logger().warning(validation_line(block, best))
+        return block
 
-    def _announce_graph(self, cfg, keep: bool, episodes: Path) -> None:
-        """Before a graph tuning: how many episodes, how long (from a lock-step rate
-        of 1 000–20 000 samples/s per lane), and what the bags take."""
-        t = self.tuning.swarm
-        count = t.particles * t.iterations
-        samples = cfg.episode.samples
-        lanes = len(self.lanes)
-        per_bag = samples * BAG_BYTES_PER_SAMPLE
-        fast, slow = (count * samples / lanes / rate for rate in (20_000.0, 1_000.0))
-        self.get_logger().info(
-            f"graph tuning: {count} episodes of {samples} samples over {lanes} lane(s), about "
-            f"{_duration(fast)} to {_duration(slow)}; each episode's bag ~{per_bag / 1e6:.1f} MB, "
-            + (f"kept under {episodes} ({count * per_bag / 1e9:.2f} GB in all)" if keep
-               else "scored then deleted (keep_episodes:=true keeps them)") + "; ~/progress shows the ETA")
+
+def read_settings(node: Node, changes: dict | None = None) -> Settings:
+    """The session's settings from the parameters (with ``changes`` over them),
+    through the checks ``has-control tune`` makes; a ConfigError line names the culprit."""
+    changes = {k: plain(v) for k, v in (changes or {}).items()}
+    where = f"parameter of {node.get_fully_qualified_name()}"
+
+    def value(name):
+        return changes[name] if name in changes else plain(node.get_parameter(name).value)
+    for name in OWN_PARAMETERS:
+        reason = refusal(OWN_PARAMETERS, name, value(name))
+        if reason is not None:
+            raise ConfigError(f"{where}: {reason}")
+    cfg = config_from_node(node, PREFIXES, overrides={k: v for k, v in changes.items() if k.startswith(PREFIXES)})
+    flat = {k: value(k) for k in TUNING_TABLE}
+    tuning = tuning_from_parameters(flat, {k: where for k in flat})
+    evaluator = value("evaluator")
+    path, how = value("scenarios"), value("aggregate")
+    if path and evaluator == "graph":
+        raise ConfigError(f"parameter scenarios = {path!r}: needs evaluator batch (the lanes run one plant)")
+    # checked as tune's --scenarios/--aggregate; "mean" (the default) without scenarios is the nominal episode
+    tuning = robust_tuning(tuning, cfg, path, how if path or how != "mean" else None,
+                           ("parameter scenarios", "parameter aggregate"))
+    return Settings(cfg, tuning, evaluator, value("record") or None, value("resume") or None,
+                    bool(value("force")), float(value("episode_timeout")), bool(value("validate_best")),
+                    float(value("validation_tolerance")), bool(value("keep_episodes")),
+                    int(value("log_every")), float(value("lane_timeout")))
+
+
+def announce_graph(node: "TunerNode", cfg, keep: bool, episodes: Path) -> None:
+    """Before a graph tuning: how many episodes, how long (from a lock-step rate
+    of 1 000–20 000 samples/s per lane), and what the bags take."""
+    t = node.tuning.swarm
+    count = t.particles * t.iterations
+    samples = cfg.episode.samples
+    lanes = len(node.lanes)
+    per_bag = samples * BAG_BYTES_PER_SAMPLE
+    fast, slow = (count * samples / lanes / rate for rate in (20_000.0, 1_000.0))
+    node.get_logger().info(
+        f"graph tuning: {count} episodes of {samples} samples over {lanes} lane(s), about "
+        f"{_duration(fast)} to {_duration(slow)}; each episode's bag ~{per_bag / 1e6:.1f} MB, "
+        + (f"kept under {episodes} ({count * per_bag / 1e9:.2f} GB in all)" if keep
+           else "scored then deleted (keep_episodes:=true keeps them)") + "; ~/progress shows the ETA")
 
 
 def _k(gains) -> str:
     return f"({gains[0]:.2f}, {gains[1]:.2f}, {gains[2]:.2f})"
-
-
-def _differs(a, b) -> bool:
-    a = list(a) if isinstance(a, (list, tuple)) else a
-    b = list(b) if isinstance(b, (list, tuple)) else b
-    return a != b
 
 
 def _duration(seconds: float) -> str:
