@@ -145,7 +145,7 @@ def test_record_without_lanes_writes_the_result_and_a_second_start_needs_force(c
         t0 = time.monotonic()
         assert _service(ex, client, "/tuner/start").success
         assert _spin_until(ex, tuner.done.is_set, 120)
-        assert time.monotonic() - t0 < 8.0 and tuner.error is None         # optional lanes: 2 s, not 10
+        assert time.monotonic() - t0 < 9.5 and tuner.error is None         # optional lanes: 2 s, not 10
         assert (rec / "tune.json").is_file() and (rec / "gains.yaml").is_file()
         again = _service(ex, client, "/tuner/start")                     # the session is there: refused now
         assert not again.success and "exists already" in again.message and "force" in again.message
