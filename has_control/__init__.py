@@ -104,6 +104,10 @@ _API = {
 
 
 def __getattr__(name: str):
+    if name == "__version__":                    # setup.py's version, one home
+        from has_control.common.version import package_version     # lazy: on first use only (PEP 562)
+        globals()[name] = value = package_version()
+        return value
     module = _API.get(name)
     if module is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -114,4 +118,4 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    return sorted(set(globals()) | set(_API))
+    return sorted(set(globals()) | set(_API) | {"__version__"})

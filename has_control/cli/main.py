@@ -12,12 +12,12 @@ import signal
 import sys
 import threading
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
 
 from has_control.common.interrupts import raise_interrupt
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
 from has_control.cli.node_help import NODES, print_help, wants_help
 from has_control.common.errors import HasControlError
+from has_control.common.version import package_version
 
 #: The subcommands, in the order ``--help`` lists them, and their one-line help; each is the module
 #: ``has_control.cli.<name>`` (``-`` as ``_``), imported only when it runs.
@@ -51,7 +51,7 @@ def build_parser(command: str | None = None) -> Parser:
     subcommand's module is imported and its arguments declared (the others
     are listed by their help), so a run loads what it runs and no more."""
     p = Parser(prog="has-control", description=__doc__.splitlines()[0])
-    p.add_argument("--version", action="version", version=f"has-control {_version()}")
+    p.add_argument("--version", action="version", version=f"has-control {package_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     for name, text in COMMANDS.items():
         sp = sub.add_parser(name, help=text)
@@ -134,13 +134,6 @@ def _quiet_stdout() -> None:
 #: Top-level modules that come with ROS 2 (rclpy and the message packages), not with pip install.
 ROS_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "std_msgs", "std_srvs",
                "rosgraph_msgs", "diagnostic_msgs", "lifecycle_msgs", "rpyutils", "rosidl_runtime_py"}
-
-
-def _version() -> str:
-    try:
-        return version("has_control")
-    except PackageNotFoundError:                 # run from a source tree
-        return "0.1.0 (source tree)"
 
 
 def plant() -> int:

@@ -346,12 +346,13 @@ def _init(args, prog: str):
 
 
 def trigger_service(node, name: str, action, message: str):
-    """A std_srvs/Trigger service ``name`` that calls ``action()`` and answers ``message``."""
+    """A std_srvs/Trigger service ``name`` that calls ``action()`` and answers ``message``,
+    or, when ``action()`` returns a reason (a string: it refused), success false with that reason."""
     from std_srvs.srv import Trigger
 
     def on_call(request, response):
-        action()
-        response.success = True
-        response.message = message
+        refused = action()
+        response.success = not isinstance(refused, str)
+        response.message = refused if isinstance(refused, str) else message
         return response
     return node.create_service(Trigger, name, on_call)
