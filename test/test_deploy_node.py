@@ -124,6 +124,23 @@ def test_on_the_plant_node_a_limit_cycling_deployment_falls_back_within_100_ms_o
     answered = ~np.isnan(trace[:, Col.t])
     assert answered.all()
     run_J = score_arrays(trace[:, Col.e1], trace[:, Col.u], cfg.episode.as_array()).J
-    assert run_J <= 2.0 * simulate(cfg, SAFE).score.J
+    assert run_J == res.J and res.safe_J == simulate(cfg, SAFE).score.J
+    assert run_J <= 2.0 * res.safe_J
     assert (tmp_path / "run" / "metadata.yaml").exists()
     assert WATCHDOG_TOPIC in (tmp_path / "run" / "metadata.yaml").read_text()
+
+
+@pytest.mark.ros
+def test_on_the_plant_node_a_deployment_that_behaves_ends_on_the_tuned_gains_and_is_measured(machine, context):
+    from has_control.nodes.deploy_node import deploy_on_plant_node
+    tuned = (170.0, 170.0, 175.0)
+    plan = DeploymentPlan(SAFE, tuned, steps=2, settle=0.5, hold=0.5)
+    cfg = with_horizon(machine, 1.55)
+    predicted = simulate(cfg, tuned).score.J
+    res, _ = deploy_on_plant_node(machine, plan, context=context, predicted_J=predicted)
+    assert res.tripped is None and res.final_gains == pytest.approx(tuned)
+    assert [c[1] for c in res.changes] == [0, 1, 2] and all(c[3] is not None for c in res.changes)
+    assert res.J < res.safe_J
+    # the tuned gains' cost rate over their step (after the start-up transient) is below the whole run's
+    assert res.gap is not None and 0.0 < res.gap < 1.0
+    assert "within 2x" in res.lines()[-1]

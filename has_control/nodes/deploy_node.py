@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -29,6 +30,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from has_control.core.cost import score_arrays
+from has_control.core.episode import Col, simulate
 from has_control.core.params import Config
 from has_control.deploy.guarded import DeploymentPlan
 from has_control.deploy.stepping import Deployer
@@ -61,6 +64,7 @@ class NodeDeployment:
     first: int | None = None
     last: int | None = None
     J: float = math.nan                        # of the samples watched
+    safe_J: float | None = None                # the safe gains alone over the same run (a simulated machine)
     tuned_rate: float | None = None            # J per second on the final gains' step (no trip)
     predicted_J: float | None = None
     predicted_horizon: float | None = None
@@ -87,7 +91,8 @@ class NodeDeployment:
     def lines(self) -> list[str]:
         n = (self.last - self.first + 1) if self.first is not None else 0
         out = [f"deployed through the controller's parameters in {self.plan.steps} steps of {self.plan.hold:g} s "
-               f"after {self.plan.settle:g} s: {n} samples watched, J = {self.J:.6e}"]
+               f"after {self.plan.settle:g} s: {n} samples watched, J = {self.J:.6e}"
+               + (f" (safe gains alone {self.safe_J:.6e}, {self.J / self.safe_J:.3g}x)" if self.safe_J else "")]
         for asked, row, why, took in self.changes:
             when = f"took effect at sample {took} (+{took - asked})" if took is not None else "not seen taking effect"
             out.append(f"  sample {asked}: row {row} ({why}), {when}")
@@ -112,7 +117,8 @@ class NodeDeployment:
 
     def as_json(self) -> dict:
         f = lambda v: v if v is None or math.isfinite(v) else None  # noqa: E731
-        return {"J": f(self.J), "samples": (self.last - self.first + 1) if self.first is not None else 0,
+        return {"J": f(self.J), "safe_J": self.safe_J,
+                "samples": (self.last - self.first + 1) if self.first is not None else 0,
                 "tripped": self.tripped is not None,
                 "tripped_at": self.tripped[0] * self.step if self.tripped else None,
                 "reason": self.tripped[1] if self.tripped else None, "step": self.tripped[2] if self.tripped else None,
@@ -316,7 +322,11 @@ def deploy_on_plant_node(cfg: Config, plan: DeploymentPlan, limits: WatchdogLimi
         plant.run(executor)
         for _ in range(50):
             executor.spin_once(timeout_sec=0.002)
-        return node.close(), controller.trace.copy()
+        res, trace = node.close(), controller.trace.copy()
+        ep = cfg.episode.as_array()
+        res.J = score_arrays(trace[:, Col.e1], trace[:, Col.u], ep, diverged=bool(np.isnan(trace[:, Col.u]).any())).J
+        res.safe_J = simulate(cfg, plan.safe).score.J
+        return res, trace
     finally:
         executor.shutdown()
         for x in (node, controller, plant):
