@@ -135,8 +135,7 @@ def test_on_the_plant_node_a_deployment_that_behaves_ends_on_the_tuned_gains_and
     from has_control.nodes.deploy_node import deploy_on_plant_node
     tuned = (170.0, 170.0, 175.0)
     plan = DeploymentPlan(SAFE, tuned, steps=2, settle=0.5, hold=0.5)
-    cfg = with_horizon(machine, 1.55)
-    predicted = simulate(cfg, tuned).score.J
+    predicted = simulate(machine, tuned).score.J                 # the tuner's prediction, over its 10 s
     res, _ = deploy_on_plant_node(machine, plan, context=context, predicted_J=predicted)
     assert res.tripped is None and res.final_gains == pytest.approx(tuned)
     assert [c[1] for c in res.changes] == [0, 1, 2] and all(c[3] is not None for c in res.changes)

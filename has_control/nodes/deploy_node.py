@@ -293,6 +293,7 @@ def deploy_on_plant_node(cfg: Config, plan: DeploymentPlan, limits: WatchdogLimi
     from has_control.config import build_config, config_parameters, with_horizon
     from has_control.nodes.controller_node import ControllerNode
     from has_control.nodes.plant_node import PREFIXES as PLANT_PREFIXES, PlantNode
+    predicted_horizon = cfg.episode.horizon                       # what a prediction on ``cfg`` ran over
     cfg = with_horizon(cfg, max(plan.duration() + 0.05, 1.5))    # the plan, and a little to see its end
     cfg = build_config({f"gains.k{j + 1}": float(plan.safe[j]) for j in range(3)}, source="the safe gains", base=cfg)
     limits = limits or WatchdogLimits(valve_limit=cfg.plant.valve_limit)
@@ -303,7 +304,7 @@ def deploy_on_plant_node(cfg: Config, plan: DeploymentPlan, limits: WatchdogLimi
     controller = ControllerNode(context=context, parameter_overrides=params)
     controller.quiet = True
     controller.record_trace(n)
-    node = DeployNode(plan, limits, cfg, Watched(), record, predicted_J, cfg.episode.horizon, context=context)
+    node = DeployNode(plan, limits, cfg, Watched(), record, predicted_J, predicted_horizon, context=context)
     executor = EventsExecutor(context=context)
     for x in (plant, controller, node):
         executor.add_node(x)
