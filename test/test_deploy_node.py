@@ -143,3 +143,12 @@ def test_on_the_plant_node_a_deployment_that_behaves_ends_on_the_tuned_gains_and
     # the tuned gains' cost rate over their step (after the start-up transient) is below the whole run's
     assert res.gap is not None and 0.0 < res.gap < 1.0
     assert "within 2x" in res.lines()[-1]
+
+
+def test_the_deployer_is_done_when_the_plans_last_step_has_been_held():
+    plan = DeploymentPlan(SAFE, (170.0, 170.0, 175.0), steps=2, settle=1.0, hold=0.25)
+    dt = 3e-4
+    d = Deployer(plan.schedule(), plan.switches(dt), WatchdogLimits(), dt, end=int(round(plan.duration() / dt)))
+    asked = {i: d.sample(100 + i, 0.0, 0.0) for i in range(6000) if not d.done()}    # joins at sample 100
+    assert [i for i, row in asked.items() if row >= 0] == list(plan.switches(dt)) == [0, 3333, 4166]
+    assert max(asked) == 5000

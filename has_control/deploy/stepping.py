@@ -88,7 +88,9 @@ class Deployer:
     first sample at or after its switch. Keeps the series it saw for the
     report and the bag."""
 
-    def __init__(self, schedule: np.ndarray, switches: np.ndarray, limits: WatchdogLimits, dt: float):
+    def __init__(self, schedule: np.ndarray, switches: np.ndarray, limits: WatchdogLimits, dt: float,
+                 end: int | None = None):
+        """``end``: the plan's length [samples] (default: the last step held as long as the one before)."""
         limits.check()
         self.schedule = np.ascontiguousarray(schedule, dtype=np.float64)
         self.switches = np.ascontiguousarray(switches, dtype=np.int64)
@@ -99,11 +101,9 @@ class Deployer:
         self.rows: list[tuple[int, int, str]] = []     # (sample, row, why) of every change asked for
         self.series: list[tuple[float, float, float, float]] = []   # (t [s], u [m], e1 [m], reason)
         self.last = -1
-
-    @property
-    def end(self) -> int:
-        """Samples of the plan: the last step's hold ends here (relative to the first sample)."""
-        return int(self.switches[-1] + (self.switches[-1] - self.switches[-2] if len(self.switches) > 1 else 0))
+        if end is None:
+            end = int(self.switches[-1] + (self.switches[-1] - self.switches[-2] if len(self.switches) > 1 else 0))
+        self.end = end                                 # relative to the first sample seen
 
     def done(self) -> bool:
         return self.first is not None and self.last - self.first >= self.end

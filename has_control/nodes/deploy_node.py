@@ -146,7 +146,8 @@ class DeployNode(Node):
         self.dt = cfg.episode.step
         self.step_ns = int(round(self.dt * 1e9))
         self.schedule = plan.schedule()
-        self.deployer = Deployer(self.schedule, plan.switches(self.dt), limits, self.dt)
+        self.deployer = Deployer(self.schedule, plan.switches(self.dt), limits, self.dt,
+                                 end=int(round(plan.duration() / self.dt)))
         self.pairing = Pairing(stamped=watched.layout == "has_control")
         self.params = AsyncParameterClient(self, watched.controller)
         self.result = NodeDeployment(plan, self.dt, predicted_J=predicted_J, predicted_horizon=predicted_horizon)
