@@ -152,3 +152,12 @@ def test_the_deployer_is_done_when_the_plans_last_step_has_been_held():
     asked = {i: d.sample(100 + i, 0.0, 0.0) for i in range(6000) if not d.done()}    # joins at sample 100
     assert [i for i, row in asked.items() if row >= 0] == list(plan.switches(dt)) == [0, 3333, 4166]
     assert max(asked) == 5000
+
+
+@pytest.mark.ros
+def test_deploying_to_a_controller_that_is_not_there_is_one_line_exit_2(capfd, domain_id, monkeypatch):
+    from has_control.cli.main import main
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
+    code = main(["deploy", "--gains", "264", "264", "263", "--controller", "/nobody", "--timeout", "1"])
+    err = capfd.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "/nobody" in err[0]
