@@ -118,7 +118,7 @@ def test_on_the_plant_node_a_limit_cycling_deployment_falls_back_within_100_ms_o
     u, t = blind.trace[:, Col.u], blind.trace[:, Col.t]
     onset = t[np.flatnonzero((np.abs(u) >= 0.98 * LIMIT) & (t > switched * dt))[0]]
     assert blind.tuned_J > 10 * blind.safe_J                   # unguarded, it does limit-cycle
-    assert fell_back * dt <= onset + 0.1
+    assert fell_back * dt <= onset + 0.1 and res.fallback_latency() <= 0.1
     assert res.final_gains == pytest.approx(SAFE)
     cfg = with_horizon(machine, max(plan.duration() + 0.05, 1.5))
     answered = ~np.isnan(trace[:, Col.t])
