@@ -16,7 +16,8 @@ from pathlib import Path
 #: constants the kernels bake in).
 COMPILED_MODULES = ("core.jit", "core.params", "core.actuator", "core.road", "core.reference",
                     "core.abc_controller", "core.cost", "core.measures", "core.noise", "core.episode", "wire.cdr",
-                    "wire.codec", "wire.topics", "wire.steps")
+                    "wire.codec", "wire.topics", "wire.steps", "identify.data", "identify.kernel",
+                    "deploy.watchdog", "deploy.stepping", "deploy.guarded")
 
 
 def _cache_key() -> str:
