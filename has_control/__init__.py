@@ -3,7 +3,8 @@ of a hydraulic active-suspension actuator.
 
 Importing the package costs almost nothing: the public API below loads on
 first use, the compiled core (and numba) when a module of it is imported, and
-no signal policy is installed (``has_control.cli`` installs its own)."""
+no signal policy is installed (``has_control.cli`` installs its own, from
+``has_control.common.interrupts``)."""
 from __future__ import annotations
 
 import hashlib
@@ -15,7 +16,8 @@ from pathlib import Path
 #: constants the kernels bake in).
 COMPILED_MODULES = ("core.jit", "core.params", "core.actuator", "core.road", "core.reference",
                     "core.abc_controller", "core.cost", "core.measures", "core.noise", "core.episode", "wire.cdr",
-                    "wire.codec", "wire.topics", "wire.steps")
+                    "wire.codec", "wire.topics", "wire.steps", "identify.data", "identify.kernel",
+                    "deploy.watchdog", "deploy.stepping", "deploy.guarded")
 
 
 def _cache_key() -> str:
@@ -85,43 +87,6 @@ if not any(isinstance(f, _KeyedFinder) for f in sys.meta_path):
     sys.meta_path.insert(0, _KeyedFinder())
 
 
-def _exit_quietly_on_interrupt(signum, frame):
-    """Leave at once: an exception raised inside a C extension's import (numpy,
-    numba) would be turned into an ImportError with a traceback."""
-    os.write(2, b"has-control: interrupted\n")
-    os._exit(130)
-
-
-def raise_interrupt(signum, frame):
-    """A SIGTERM handler: end as Ctrl-C does (``has_control.cli.main`` installs it)."""
-    raise KeyboardInterrupt
-
-
-class quiet_interrupts:
-    """A context in which Ctrl-C or SIGTERM ends the process at once with one
-    line and status 130 (as ``has_control.cli.main`` ends an interrupted
-    command): for loading code (imports, numba's cache), where a
-    KeyboardInterrupt would surface as an ImportError or an "Exception
-    ignored" from a ctypes callback instead, and SIGTERM's default action
-    would end the process silently. Each signal only while its handler is
-    Python's default (main thread, nobody else's); restored on exit."""
-
-    def __enter__(self):
-        import signal
-        import threading
-        main = threading.current_thread() is threading.main_thread()
-        defaults = {signal.SIGINT: (signal.default_int_handler,), signal.SIGTERM: (signal.SIG_DFL, raise_interrupt)}
-        self.ours = {sig: signal.getsignal(sig) for sig, hs in defaults.items() if main and signal.getsignal(sig) in hs}
-        for sig in self.ours:
-            signal.signal(sig, _exit_quietly_on_interrupt)
-        return self
-
-    def __exit__(self, *exc):
-        import signal
-        for sig, handler in self.ours.items():
-            signal.signal(sig, handler)
-
-
 #: The public API: name -> the module that defines it (loaded on first use, PEP 562).
 _API = {
     # Parameters and configuration files
@@ -140,6 +105,10 @@ _API = {
 
 
 def __getattr__(name: str):
+    if name == "__version__":                    # setup.py's version, one home
+        from has_control.common.version import package_version     # lazy: on first use only (PEP 562)
+        globals()[name] = value = package_version()
+        return value
     module = _API.get(name)
     if module is None:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
@@ -150,4 +119,4 @@ def __getattr__(name: str):
 
 
 def __dir__():
-    return sorted(set(globals()) | set(_API))
+    return sorted(set(globals()) | set(_API) | {"__version__"})

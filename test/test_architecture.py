@@ -98,6 +98,34 @@ def test_no_module_imports_a_wing_further_out_or_beside_its_own():
     assert wrong == []
 
 
+def test_no_module_imports_the_root_package():
+    """``has_control/__init__.py`` is the public API over the wings: a module
+    inside a wing that imports it (``import has_control``, ``from has_control
+    import X``) makes a cycle that the dotted-name checks above do not see."""
+    wrong = []
+    for module, _, path in _modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import) and any(a.name == "has_control" for a in node.names):
+                wrong.append(f"{path.relative_to(PACKAGE)}:{node.lineno}")
+            elif isinstance(node, ast.ImportFrom) and node.module == "has_control" and not node.level:
+                wrong.append(f"{path.relative_to(PACKAGE)}:{node.lineno}")
+    assert wrong == []
+
+
+def test_every_cached_kernel_is_keyed_by_every_compiled_source():
+    """A module whose compiled functions are cached on disk (``core.jit``'s
+    options, or ``cache=True``) calls the core's functions, which numba inlines:
+    unless it is one of ``COMPILED_MODULES`` its cache outlives an edit to them
+    (a stale kernel: same numbers, other code)."""
+    cached = set()
+    for module, _, path in _modules():
+        decorators = [line.strip() for line in path.read_text().splitlines() if line.strip().startswith("@")]
+        if any("jit(" in d and ("cache=True" in d or "KERNEL" in d or "INLINE" in d or "LEAF" in d)
+               for d in decorators):
+            cached.add(module.removeprefix("has_control."))
+    assert sorted(cached - set(has_control.COMPILED_MODULES)) == []
+
+
 def _assert_no_cycle(top_level_only: bool) -> None:
     """No import cycle among the package's modules (a module's own packages,
     which Python loads before it, are not an edge)."""

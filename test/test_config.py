@@ -85,3 +85,26 @@ def test_sections_apply_to_the_nodes_they_name_as_rcl_decides(tmp_path):
                  "/controller:\n  ros__parameters:\n    actuator: {mass: 1500.0}\n")
     with pytest.raises(ConfigError, match=r"actuator.mass = 1000.0 for /plant .* 1500.0 for /controller"):
         load_config([q])
+
+
+def test_the_shipped_files_comments_derive_from_the_parameter_tables():
+    """One table per component (#28 item 4): each value line's comment in config/*.yaml is its Param's
+    meaning and unit (regenerate with has_control.config.yaml_with_comments after editing a table)."""
+    from has_control.config import CONFIG_DIR, CONFIG_TABLE, yaml_with_comments
+    from has_control.tuning.parameters import TUNING_TABLE
+    tables = {**CONFIG_TABLE, **TUNING_TABLE}
+    for name in ("actuator.yaml", "controller.yaml", "simulation.yaml", "plant.yaml", "tuner.yaml"):
+        text = (CONFIG_DIR / name).read_text()
+        assert yaml_with_comments(text, tables) == text, name
+    assert "# m, moving mass [kg]" in (CONFIG_DIR / "actuator.yaml").read_text()
+
+
+def test_a_parameter_table_checks_type_range_and_choices_in_one_line():
+    from has_control.config import CONFIG_TABLE, refusal
+    assert refusal(CONFIG_TABLE, "gains.k1", 300) is None                      # a whole number for a double
+    assert refusal(CONFIG_TABLE, "gains.k1", -1.0) == "gains.k1 = -1.0: must be > 0 and <= 1e+06"
+    assert refusal(CONFIG_TABLE, "plant.delay", 17) == "plant.delay = 17: must be a whole number in [0, 16]"
+    assert "expected one of" in refusal(CONFIG_TABLE, "reference.kind", "square")
+    assert refusal(CONFIG_TABLE, "noise.seed", -1) == "noise.seed = -1: expected a whole number in [0, 2^63)"
+    assert refusal(CONFIG_TABLE, "adaptation.gain", [1.0]) == \
+        "adaptation.gain = [1.0]: expected a list of two numbers"

@@ -93,6 +93,7 @@ def test_deploy_cli_prints_the_trip_and_flags_the_gap(capsys, tmp_path):
     (["--gains", "264", "264", "-1"], "--gains"),
     (["--gains", "264", "264", "263", "--steps", "0"], "--steps"),
     (["--gains", "264", "264", "263", "--hold", "nan"], "--hold"),
+    (["--gains", "264", "264", "263", "--controller", "1bad"], "--controller"),
 ])
 def test_bad_deploy_input_is_one_line_exit_2(capsys, argv, culprit):
     try:

@@ -142,7 +142,7 @@ def test_log_time_is_simulation_time_for_every_type():
         got = asyncio.run(_log_and_read(view, {"/sim0/state": state, "/sim0/clock": clock,
                                                "/sim0/controller/gains": gains}))
         with pytest.raises(HasControlError, match="not a run topic"):
-            view.sink("/diagnostics")
+            view.sink("/chatter")
     assert got == {"/sim0/state": (1_500_300_000, state), "/sim0/clock": (2_000_000_000, clock),
                    "/sim0/controller/gains": (250_000_000, gains)}
 
@@ -165,7 +165,7 @@ def test_foxglove_port_parameter_serves_the_nodes_topics(context):  # noqa: F811
     try:
         assert node.live_view.port == port
         assert set(node.live_view.channels) == {"/command", "/controller/controller_state",
-                                                "/controller/reference", "/controller/gains"}
+                                                "/controller/reference", "/controller/gains", "/diagnostics"}
         res = node.set_parameters([Parameter("foxglove_port", value=port + 1)])
         assert not res[0].successful and "read-only" in res[0].reason
     finally:

@@ -24,11 +24,37 @@ def test_node_help_prints_usage_and_every_parameter_without_starting_a_node(node
     undescribed = [p for p in params if p.rstrip().endswith(":") and not p.startswith("  use_sim_time")]
     assert undescribed == []                                  # every parameter says what it is
     assert "ready" not in r.stdout
+    if node != "tuner":                                       # the true default, not the help's own override
+        assert any(line.startswith("  autostart = True: ") for line in params)
+    else:                                                     # real descriptions and the true choices (#30 item 6)
+        variant = next(line for line in params if line.startswith("  swarm.variant = "))
+        assert "cma-restarts" in variant and "one of: cma-restarts, pso, pso-cp, pso-cp-tvac" in variant
+        assert not any(line.split(" = ")[0].strip() == line.rsplit(": ", 1)[-1].strip() for line in params)
+        assert "restarts.evaluations = 4000: cma-restarts: the budget" in r.stdout
 
 
 def test_version():
+    import re
+    from pathlib import Path
+    import has_control
     r = subprocess.run(CLI + ["--version"], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.startswith("has-control ")
+    setup = (Path(__file__).resolve().parent.parent / "setup.py").read_text()
+    assert has_control.__version__ == re.search(r'version="([^"]+)"', setup).group(1)     # one home: setup.py
+    assert r.stdout.strip() == f"has-control {has_control.__version__}"
+
+
+def test_an_unconfigured_controller_says_it_waits_for_configuration(domain_id):
+    p = subprocess.Popen(CLI + ["controller", "--ros-args", "-p", "autostart:=false"], stderr=subprocess.PIPE,
+                         stdout=subprocess.DEVNULL, text=True, env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
+    try:
+        line = p.stderr.readline()
+        while line and "unconfigured" not in line:
+            line = p.stderr.readline()
+        assert "unconfigured: waiting for lifecycle transitions" in line and "configure" in line
+    finally:
+        p.terminate()
+        p.wait(timeout=30)
 
 
 def test_a_missing_rclpy_is_one_line_naming_what_to_install(tmp_path):
@@ -46,24 +72,6 @@ def test_a_relative_namespace_records_under_its_absolute_name(context, tmp_path)
     run = run_stack(with_horizon(Config(), 1.5), namespace="sim0", record=tmp_path / "run", context=context)
     bag = read_bag(run.bag)
     assert bag.count("/sim0/state") == 5000 and bag.count("/sim0/command") >= 4999
-
-
-def test_the_foxglove_layout_plots_columns_that_exist():
-    import json
-    import re
-    from pathlib import Path
-    from has_control.wire.topics import CONTROLLER_STATE_COLUMNS, RUN_TOPICS
-    layout = json.loads((Path(__file__).resolve().parent.parent / "config/foxglove/has_control.json").read_text())
-    paths = [p for panel in layout["configById"].values() for p in panel.get("paths", [])]
-    assert len(paths) >= 7
-    sizes = {"/state.position": 3, "/state.effort": 3, "/command.position": 1,
-             "/controller/controller_state.data": len(CONTROLLER_STATE_COLUMNS)}
-    for p in paths:
-        field, index = re.fullmatch(r"(\S+)\[(\d+)\]", p["value"]).groups()
-        assert field.split(".")[0].lstrip("/") in RUN_TOPICS and int(index) < sizes[field]
-        assert "[" in p["label"]                              # a unit in every label
-    assert {CONTROLLER_STATE_COLUMNS[int(re.search(r"\[(\d)\]", p["value"]).group(1))]
-            for p in paths if "controller_state" in p["value"]} == {"e1", "x1d", "a1_hat", "a2_hat"}
 
 
 def test_replay_controller_tests_the_running_node_it_names(context, domain_id, tmp_path):

@@ -49,8 +49,9 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
     controller, plant = ControllerNode(context=context), PlantNode(context=context)
     try:
         k1, kind, step = controller.describe_parameters(["gains.k1", "reference.kind", "simulation.step"])
-        assert "[1/s]" in k1.description and 0.0 < k1.floating_point_range[0].from_value < 1e-300
-        assert k1.floating_point_range[0].to_value == 1.0e6 and not k1.read_only
+        # (0, 1e6]: an open bound has no FloatingPointRange (it would need a subnormal Min, #30 item 6)
+        assert "[1/s]" in k1.description and k1.additional_constraints == "> 0 and <= 1e+06"
+        assert not k1.floating_point_range and not k1.read_only
         assert "sine" in kind.additional_constraints and "chirp" in kind.additional_constraints
         assert step.read_only and "[s]" in step.description
         mass, mode = plant.describe_parameters(["actuator.mass", "mode"])
@@ -58,6 +59,59 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
         assert mode.read_only and "realtime" in mode.additional_constraints
         from rclpy.parameter import Parameter
         assert not controller.set_parameters([Parameter("gains.k1", value=0.0)])[0].successful
+        refused = controller.set_parameters([Parameter("gains.k1", value=-1.0)])[0]
+        assert not refused.successful and "gains.k1 = -1.0" in refused.reason and "> 0 and <= 1e+06" in refused.reason
+        assert "e-308" not in refused.reason and controller.get_parameter("gains.k1").value > 0
+        assert controller.set_parameters([Parameter("gains.k1", value=300)])[0].successful     # a whole number
+        assert controller.get_parameter("gains.k1").value == 300.0 and controller._pending[0].gains.k1 == 300.0
+        damping, = plant.describe_parameters(["actuator.damping"])
+        assert damping.floating_point_range[0].from_value == 0.0           # >= 0: a closed range
     finally:
         controller.destroy_node()
         plant.destroy_node()
+
+
+@pytest.mark.ros
+def test_a_whole_number_for_a_double_is_taken_at_start_up_and_live_settings_apply(context):
+    """#30 item 6: -p gains.k1:=300 (an integer) starts the controller with 300.0; a setting the
+    node accepts at runtime takes effect (publish_internals, failsafe_samples), none is ignored."""
+    from rclpy.parameter import Parameter
+    from has_control.nodes.plant_node import PlantNode
+    controller = ControllerNode(context=context, parameter_overrides=[Parameter("gains.k1", value=300)])
+    plant = PlantNode(context=context, parameter_overrides=[Parameter("actuator.mass", value=1600)])
+    try:
+        assert controller.get_parameter("gains.k1").value == 300.0 and controller.k[0] == 300.0
+        assert plant.get_parameter("actuator.mass").value == 1600.0
+        assert controller.set_parameters([Parameter("publish_internals", value=False)])[0].successful
+        assert controller._outputs.publish_internals is False
+        assert plant.set_parameters([Parameter("failsafe_samples", value=3)])[0].successful
+        assert plant.failsafe_samples == 3
+        bad = plant.set_parameters([Parameter("failsafe_samples", value=-1)])[0]
+        assert not bad.successful and plant.failsafe_samples == 3
+    finally:
+        controller.destroy_node()
+        plant.destroy_node()
+
+
+@pytest.mark.ros
+def test_every_node_parameter_comes_from_a_table(context):
+    """#28 item 4: a node declares nothing that its component's table does not hold (rclpy's
+    use_sim_time and start_type_description_service, the live view's foxglove_port aside), and
+    each descriptor is the table's."""
+    from has_control.config import CONFIG_TABLE
+    from has_control.nodes import controller_node, plant_node, tuner_node
+    from has_control.nodes.parameters import descriptor
+    extra = {"use_sim_time", "start_type_description_service", "foxglove_port"}
+    for module, cls in ((plant_node, "PlantNode"), (controller_node, "ControllerNode"),
+                        (tuner_node, "TunerNode")):
+        node = getattr(module, cls)(context=context)
+        try:
+            tables = {**CONFIG_TABLE, **getattr(module, "TUNER_TABLE", {}), **module.OWN_PARAMETERS}
+            names = set(node._parameters) - extra
+            assert names <= set(tables), sorted(names - set(tables))
+            for name in names:
+                desc = node.describe_parameter(name)
+                assert desc.description == tables[name].comment() and desc.description, name
+                assert desc.additional_constraints == descriptor(tables[name]).additional_constraints, name
+        finally:
+            node.destroy_node()

@@ -17,8 +17,8 @@ from has_control.core.scenarios import parse_aggregate
 from has_control.core.episode import evaluate
 from has_control.core.params import Config
 from has_control.tuning.bounds import diagnose
-from has_control.tuning.methods import restore
-from has_control.tuning.restarts import Restarts, RestartSettings, minimize
+from has_control.tuning.methods import minimize, restore
+from has_control.tuning.restarts import Restarts, RestartSettings
 from has_control.tuning.session import ITERATION, SESSION
 from has_control.tuning.swarm import SwarmError, record_dict
 from has_control.tuning.tuner import Tuning, tune

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from has_control.tuning.swarm import Swarm, SwarmError, SwarmSettings, crazy_probability, minimize
+from has_control.tuning.methods import minimize
+from has_control.tuning.swarm import Swarm, SwarmError, SwarmSettings, crazy_probability
 
 
 def sphere(x):
@@ -17,7 +18,7 @@ BOX5 = ([-5.0] * 5, [5.0] * 5)
 
 def test_pso_reaches_1e_6_on_a_5d_sphere_within_its_budget():
     # CEC-style budget 10 000·D = 50 000 evaluations: 50 particles x 1000 iterations
-    r = minimize(sphere, BOX5, variant="pso", n_particles=50, max_iter=1000, seed=1,
+    r = minimize(sphere, BOX5, method="pso", particles=50, iterations=1000, seed=1,
                  velocity_limit=1.0)
     assert r.fun < 1e-6 and r.nfev <= 50_000
 
@@ -28,7 +29,7 @@ def test_crazy_variants_converge_but_stall_above_1e_6_under_the_papers_probabili
     """Measured finding (README): ρc = ω_min·exp(ω − ω_max) redraws 33–60 % of velocity
     components every iteration, so the CP variants approach the optimum but keep
     being kicked off it: on the 5-D sphere they reach ~1e-4, not 1e-6."""
-    r = minimize(sphere, BOX5, variant=variant, n_particles=50, max_iter=1000, seed=1,
+    r = minimize(sphere, BOX5, method=variant, particles=50, iterations=1000, seed=1,
                  velocity_limit=0.15, crazy_redraw=redraw)
     start = r.history[0].best_cost
     assert r.fun < 1e-2 < start
@@ -45,9 +46,9 @@ def test_crazy_probability_readings():
 
 @pytest.mark.parametrize("variant", ["pso", "pso-cp", "pso-cp-tvac"])
 def test_same_seed_same_result_bit_for_bit(variant):
-    a = minimize(sphere, BOX5, variant=variant, n_particles=20, max_iter=50, seed=42)
-    b = minimize(sphere, BOX5, variant=variant, n_particles=20, max_iter=50, seed=42)
-    c = minimize(sphere, BOX5, variant=variant, n_particles=20, max_iter=50, seed=43)
+    a = minimize(sphere, BOX5, method=variant, particles=20, iterations=50, seed=42)
+    b = minimize(sphere, BOX5, method=variant, particles=20, iterations=50, seed=42)
+    c = minimize(sphere, BOX5, method=variant, particles=20, iterations=50, seed=43)
     assert np.array_equal(a.x, b.x) and a.fun == b.fun
     assert np.array_equal(a.best_costs(), b.best_costs())
     assert not np.array_equal(a.x, c.x)
@@ -55,13 +56,13 @@ def test_same_seed_same_result_bit_for_bit(variant):
 
 @pytest.mark.parametrize("variant", ["pso", "pso-cp-tvac"])
 def test_checkpoint_restore_gives_the_uninterrupted_result(variant):
-    full = minimize(sphere, BOX5, variant=variant, n_particles=15, max_iter=40, seed=5)
+    full = minimize(sphere, BOX5, method=variant, particles=15, iterations=40, seed=5)
     sw = Swarm(BOX5, SwarmSettings(variant=variant, particles=15, iterations=40), seed=5)
     for _ in range(17):
         sw.tell(sphere(sw.ask()))
     saved = json.dumps(sw.state_dict())            # through text, as on disk
     del sw
-    resumed = minimize(sphere, None, swarm=Swarm.from_state(json.loads(saved)))
+    resumed = minimize(sphere, None, optimiser=Swarm.from_state(json.loads(saved)))
     assert np.array_equal(resumed.x, full.x) and resumed.fun == full.fun
     assert resumed.nit == full.nit == 40 and resumed.nfev == full.nfev
     assert np.array_equal(resumed.best_costs(), full.best_costs())
@@ -85,20 +86,20 @@ def test_nan_costs_count_as_inf():
         f[0] = np.nan
         calls.append(1)
         return f
-    r = minimize(objective, BOX5, n_particles=10, max_iter=5, seed=0)
+    r = minimize(objective, BOX5, method="pso-cp-tvac", particles=10, iterations=5, seed=0)
     assert r.nan_costs == 5 and math.isfinite(r.fun)
     assert all(h.costs[0] == math.inf for h in r.history)
 
 
 def test_early_stop_at_target():
-    r = minimize(lambda x: np.zeros(len(x)), BOX5, n_particles=5, max_iter=100, seed=0)
+    r = minimize(lambda x: np.zeros(len(x)), BOX5, method="pso-cp-tvac", particles=5, iterations=100, seed=0)
     assert r.nit == 1 and "target" in r.message
 
 
 @pytest.mark.parametrize("kwargs, culprit", [
-    (dict(variant="pso-xx"), "swarm.variant = 'pso-xx'"),
-    (dict(n_particles=0), "swarm.particles = 0"),
-    (dict(max_iter=0), "swarm.iterations = 0"),
+    (dict(method="pso-xx"), "swarm.variant = 'pso-xx'"),
+    (dict(particles=0), "swarm.particles = 0"),
+    (dict(iterations=0), "swarm.iterations = 0"),
     (dict(velocity_limit=0.0), "swarm.velocity_limit = 0.0"),
     (dict(velocity_limit=-1.0), "swarm.velocity_limit = -1.0"),
     (dict(bounds=([1.0, 2.0], [1.0, 3.0])), "bounds[0]: lower 1 must be below upper 1"),
@@ -106,6 +107,7 @@ def test_early_stop_at_target():
 ])
 def test_invalid_settings_are_rejected_in_one_line(kwargs, culprit):
     bounds = kwargs.pop("bounds", BOX5)
+    kwargs.setdefault("method", "pso-cp-tvac")
     with pytest.raises(SwarmError) as info:
         minimize(sphere, bounds, **kwargs)
     assert culprit in str(info.value) and "\n" not in str(info.value)

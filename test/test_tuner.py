@@ -177,3 +177,24 @@ def test_bad_tuner_scenarios_are_one_line(domain_id, params, culprit):
                        env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)})
     assert r.returncode == 2 and culprit in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_the_validation_block_agrees_only_within_the_tolerance():
+    """#30 item 3 without ROS: graph = library agrees; a 70x gap (the issue's 2.03e-3 against
+    2.91e-5) disagrees and names the lane parameter that differs; inf against inf agrees."""
+    from has_control.tuning.validation import (disagreement_status, lane_differences, validation_block,
+                                               validation_line)
+    mine = {"actuator.mass": 1500.0, "gains.k1": 150.0, "adaptation.lower": [0.0, 0.0]}
+    lanes = [{"lane": "/", "controller": {"actuator.mass": 1700.0, "gains.k1": 900.0,
+                                          "adaptation.lower": [0.0, 0.0]}, "plant": {"actuator.mass": 1500.0}}]
+    differ = lane_differences(mine, lanes)
+    assert differ == ["/ controller: actuator.mass = 1700.0 (the tuner's 1500.0)"]     # gains are the candidate's
+    same = validation_block({"J": 2.9e-5}, 2.9e-5, 2.9e-5, [])
+    assert same["agrees"] and same["relative_difference"] == 0.0 and "more than" not in validation_line(same, (1, 2, 3))
+    gap = validation_block({"J": 2.033186e-03}, 2.033186e-03, 2.905778e-05, differ)
+    assert not gap["agrees"] and gap["relative_difference"] > 60 and gap["tolerance"] == 1e-6
+    assert "actuator.mass = 1700.0" in validation_line(gap, (1, 2, 3))
+    assert disagreement_status((1, 2, 3), 2.9e-5, gap).startswith("disagrees")
+    assert not validation_block({"J": 1.0}, 1.0 + 1e-5, 1.0, [])["agrees"]
+    assert validation_block({"J": "inf"}, float("inf"), float("inf"), [])["agrees"]
+    assert not validation_block({"J": "inf"}, float("inf"), 1e-4, [])["agrees"]

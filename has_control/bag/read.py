@@ -46,10 +46,14 @@ class Bag:
     def count(self, topic: str) -> int:
         return len(self.messages.get(topic, ()))
 
+    def topics_named(self, relative: str, msgtype: str) -> list[str]:
+        """Every topic of ``msgtype`` named ``relative`` under any namespace (``/x``, ``/ns/x``)."""
+        return [t for t, ty in self.types.items()
+                if (t == "/" + relative or t.endswith("/" + relative)) and ty == msgtype]
+
     def find(self, relative: str, msgtype: str) -> str:
         """The one topic named ``relative`` under any namespace, of ``msgtype``."""
-        hits = [t for t, ty in self.types.items()
-                if (t == "/" + relative or t.endswith("/" + relative)) and ty == msgtype]
+        hits = self.topics_named(relative, msgtype)
         if len(hits) != 1:
             have = ", ".join(sorted(self.types)) or "none"
             what = "no" if not hits else f"{len(hits)} topics"

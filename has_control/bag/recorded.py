@@ -109,7 +109,7 @@ class Recording:
 
 
 def has_topic(bag: Bag, relative: str, msgtype: str) -> bool:
-    return any((t == "/" + relative or t.endswith("/" + relative)) and ty == msgtype for t, ty in bag.types.items())
+    return bool(bag.topics_named(relative, msgtype))
 
 
 def layout_of(bag: Bag, reading: Reading = Reading(), true_state: bool = False) -> tuple[str, str, str | None]:
@@ -241,7 +241,7 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
     stamps, rows, cache = np.zeros(len(datas), np.int64), np.zeros((len(datas), len(mapping))), {}
     for k, d in enumerate(datas):
         try:
-            lay = cdr.joint_state_layout(d)
+            lay = cdr.parse_joint_state_layout(d)
             ok = lay.size <= len(d)
         except _MALFORMED:
             ok = False

@@ -124,8 +124,7 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = (), reading: Reading =
 def _missed(bag: Bag, grid: "_Grid") -> tuple[np.ndarray | None, np.ndarray | None]:
     """(missed samples, fail-safe samples) from ``…/plant/missed`` if the bag
     has that topic (a realtime stack's bag: no messages, no misses), else (None, None)."""
-    hits = [t for t, ty in bag.types.items() if (t == "/" + MISSED or t.endswith("/" + MISSED))
-            and ty == FLOAT64_ARRAY]
+    hits = bag.topics_named(MISSED, FLOAT64_ARRAY)
     if not hits:
         return None, None
     topic = bag.find(MISSED, FLOAT64_ARRAY)
@@ -194,8 +193,7 @@ def _on_grid(n: int, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 def _optional(bag: Bag, relative: str, msgtype: str) -> str | None:
     """The topic ``relative`` of ``msgtype`` if the bag has it with messages (two such: refused)."""
-    hits = [t for t, ty in bag.types.items()
-            if (t == "/" + relative or t.endswith("/" + relative)) and ty == msgtype]
+    hits = bag.topics_named(relative, msgtype)
     if len(hits) > 1:
         bag.find(relative, msgtype)             # raises, naming the topics
     return hits[0] if hits and bag.messages[hits[0]] else None

@@ -103,11 +103,11 @@ class Problem:
 
 def run_ours(variant: str, p: Problem, seed: int) -> None:
     # lazy: this file also runs in the peers' venv (scripts/bench --swarm), which has no has_control
-    from has_control.tuning.swarm import minimize
+    from has_control.tuning.methods import minimize
     # 20 % of the range on the test functions; SPEC's v_max on our own problem
     vmax = ABC_VMAX if p.name == "abc" else 0.2 * (p.upper[0] - p.lower[0])
-    minimize(p, (p.lower, p.upper), variant=variant, n_particles=PARTICLES,
-             max_iter=p.budget // PARTICLES, seed=seed, velocity_limit=vmax, target=0.0)
+    minimize(p, (p.lower, p.upper), method=variant, particles=PARTICLES,
+             iterations=p.budget // PARTICLES, seed=seed, velocity_limit=vmax, target=0.0)
 
 
 def run_pyswarms(p: Problem, seed: int) -> None:

@@ -44,7 +44,7 @@ class _Spent(Exception):
 
 
 @dataclass
-class Trace:
+class BudgetTrace:
     """Best J so far after each evaluation, and the wall time when its batch ended."""
 
     best: list[float] = field(default_factory=list)
@@ -64,12 +64,12 @@ class Trace:
         return None if n is None else self.seconds[n - 1]
 
 
-class Recorder:
+class BudgetRecorder:
     """An objective that records the trace and stops the run at ``budget``."""
 
     def __init__(self, objective: Callable[[np.ndarray], np.ndarray], budget: int):
         self.objective, self.budget = objective, budget
-        self.trace = Trace()
+        self.trace = BudgetTrace()
         self.t0 = time.perf_counter()
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
@@ -86,9 +86,9 @@ class Recorder:
         return f
 
 
-def run_method(name: str, objective, budget: int, seed: int, bounds=BOX) -> Trace:
+def run_method(name: str, objective, budget: int, seed: int, bounds=BOX) -> BudgetTrace:
     """One run of ``name`` with ``budget`` evaluations; its trace."""
-    rec = Recorder(objective, budget)
+    rec = BudgetRecorder(objective, budget)
     lo, hi = bounds
     try:
         if name == "cma-restarts":
@@ -135,7 +135,7 @@ def study(objective, best_known: float, methods, seeds, budgets=BUDGETS, progres
     rows = []
     for name in methods:
         anytime = METHODS[name]
-        runs: dict[int, list[Trace]] = {b: [] for b in budgets}
+        runs: dict[int, list[BudgetTrace]] = {b: [] for b in budgets}
         for seed in seeds:
             if anytime:
                 tr = run_method(name, objective, max(budgets), seed)

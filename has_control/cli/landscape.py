@@ -9,10 +9,10 @@ import json
 from has_control.cli.args import (add_config, add_duration, add_json, batch, check_outputs, dask_spec, figure_path,
                                   gains_arg, load, number)
 from has_control.core.params import PAPER_TUNED_GAINS
-from has_control.tuning.landscape import NAMES, slices
+from has_control.tuning.landscape import NAMES, check_plan, slices
 from has_control.tuning.tuner import load_tuning, make_objective, robust_tuning
 
-MAX_POINTS = 300                 # a side of a slice's grid: 3 x 300^2 = 270 000 episodes at most
+MAX_POINTS = 300                 # a side of a slice's grid; points² x scenarios is bounded by check_plan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,10 +35,11 @@ def run(args) -> int:
     check_outputs(args, files=("plot",))
     cfg = load(args)
     tuning = robust_tuning(load_tuning(args.config or []), cfg, args.scenarios, args.aggregate)
+    episodes = check_plan(args.points, len(tuning.scenarios))
     point = gains_arg(args.point, "--point") if args.point else PAPER_TUNED_GAINS.as_tuple()
     with batch(args) as evaluator:
         grid = slices(make_objective(cfg, tuning, evaluator), point, tuning.lower, tuning.upper,
-                      points=args.points, beyond=args.beyond)
+                      points=args.points, beyond=args.beyond, scenarios=len(tuning.scenarios))
     objective = (f"{tuning.aggregate} of J over {len(tuning.scenarios)} scenarios" if tuning.scenarios
                  else "J, nominal model")
     if args.plot:
@@ -47,7 +48,7 @@ def run(args) -> int:
                                         f"k = ({point[0]:g}, {point[1]:g}, {point[2]:g})")
     if args.json:
         print(json.dumps({"objective": objective, "point": list(point), "points": args.points,
-                          "episodes": 3 * args.points ** 2 * max(1, len(tuning.scenarios)),
+                          "episodes": episodes,
                           "slices": [s.as_json() for s in grid]}))
         return 0
     print(f"{objective}, {cfg.episode.horizon:g} s episodes: slices through k = ({point[0]:g}, {point[1]:g}, "

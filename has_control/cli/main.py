@@ -12,12 +12,12 @@ import signal
 import sys
 import threading
 from importlib import import_module
-from importlib.metadata import PackageNotFoundError, version
 
-from has_control import raise_interrupt
+from has_control.common.interrupts import raise_interrupt
 from has_control.cli.args import EXIT_INTERRUPTED, EXIT_USAGE, Parser
-from has_control.cli.node_help import print_help, wants_help
+from has_control.cli.node_help import NODES, print_help, wants_help
 from has_control.common.errors import HasControlError
+from has_control.common.version import package_version
 
 #: The subcommands, in the order ``--help`` lists them, and their one-line help; each is the module
 #: ``has_control.cli.<name>`` (``-`` as ``_``), imported only when it runs.
@@ -36,16 +36,13 @@ COMMANDS = {
     "deploy": "deploy tuned gains in steps under a watchdog that falls back to the safe gains",
 }
 
-#: Node subcommands: the node's module under has_control.nodes; the rest of the line goes to ROS.
-NODES = {"plant": "plant_node", "controller": "controller_node", "tuner": "tuner_node"}
-
 
 def run_node(name: str, ros_args: list[str]) -> int:
     """Run one node as this process (for machines without the ros2 command);
     everything after the node's name goes to ROS (``--ros-args -p k:=v ...``)."""
     if wants_help(ros_args):
         return print_help(name)
-    import_module(f"has_control.nodes.{NODES[name]}").main(args=[f"has-control {name}", *ros_args])
+    import_module(f"has_control.nodes.{NODES[name][0]}").main(args=[f"has-control {name}", *ros_args])
     return 0
 
 
@@ -54,7 +51,7 @@ def build_parser(command: str | None = None) -> Parser:
     subcommand's module is imported and its arguments declared (the others
     are listed by their help), so a run loads what it runs and no more."""
     p = Parser(prog="has-control", description=__doc__.splitlines()[0])
-    p.add_argument("--version", action="version", version=f"has-control {_version()}")
+    p.add_argument("--version", action="version", version=f"has-control {package_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=Parser)
     for name, text in COMMANDS.items():
         sp = sub.add_parser(name, help=text)
@@ -70,17 +67,7 @@ def build_parser(command: str | None = None) -> Parser:
 def main(argv=None) -> int:
     """The program (``argv`` None: the command line); the exit status."""
     if argv is None:
-        if not sys.argv[1:2] or sys.argv[1] not in NODES:      # a node's SIGTERM is rclpy's (a clean shutdown)
-            _terminate_as_interrupt()
-        try:
-            status = main(sys.argv[1:])
-        finally:
-            _ignore_interrupts()
-        if status == EXIT_INTERRUPTED:        # what is left to run is the shutdown: end with the status
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(status)
-        return status
+        return _program(sys.argv[1:])
     argv = list(argv)
     try:
         if argv and argv[0] in NODES:
@@ -90,6 +77,12 @@ def main(argv=None) -> int:
     except HasControlError as exc:
         print(f"has-control: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError as exc:
+        if not _stdout_closed():
+            print(f"has-control: error: {_os_error_line(exc)}", file=sys.stderr)
+            return EXIT_USAGE
+        _quiet_stdout()
+        return EXIT_STDOUT_CLOSED
     except OSError as exc:
         print(f"has-control: error: {_os_error_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
@@ -101,6 +94,7 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return EXIT_USAGE
     except MemoryError:
+        _out_of_memory.append(True)           # leave at once: the shutdown could hang on memory it cannot get
         print("has-control: error: out of memory", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
@@ -108,16 +102,38 @@ def main(argv=None) -> int:
         return EXIT_INTERRUPTED
 
 
+#: The status of a command whose standard output was closed by its reader (``has-control ... | head``):
+#: no message, as Unix tools killed by SIGPIPE end (128 + 13).
+EXIT_STDOUT_CLOSED = 141
+
+#: Set when a command ran out of memory: the program then ends without the interpreter's shutdown.
+_out_of_memory: list = []
+
+
+def _stdout_closed() -> bool:
+    """Whether file descriptor 1 is a pipe (or socket) whose reader has gone."""
+    import select
+    try:
+        poll = select.poll()
+        poll.register(1, select.POLLOUT)
+        return any(ev & (select.POLLERR | select.POLLHUP) for _, ev in poll.poll(0))
+    except (OSError, ValueError):
+        return False
+
+
+def _quiet_stdout() -> None:
+    """Standard output to /dev/null: what is left in its buffer (flushed at exit) goes nowhere."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
+    except OSError:
+        pass
+
+
 #: Top-level modules that come with ROS 2 (rclpy and the message packages), not with pip install.
 ROS_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "sensor_msgs", "std_msgs", "std_srvs",
                "rosgraph_msgs", "diagnostic_msgs", "lifecycle_msgs", "rpyutils", "rosidl_runtime_py"}
-
-
-def _version() -> str:
-    try:
-        return version("has_control")
-    except PackageNotFoundError:                 # run from a source tree
-        return "0.1.0 (source tree)"
 
 
 def plant() -> int:
@@ -136,7 +152,32 @@ def tuner() -> int:
 
 
 def main_of(node: str) -> int:
-    return main([node, *sys.argv[1:]])
+    return _program([node, *sys.argv[1:]])
+
+
+def _program(argv: list[str]) -> int:
+    """The program run from a console script: its status, the process left at once
+    (os._exit) when interrupted or out of memory."""
+    if not argv[:1] or argv[0] not in NODES:      # a node's signals are its own (nodes.runtime.NodeSignals)
+        _terminate_as_interrupt()
+    try:
+        status = main(argv)
+    finally:
+        _ignore_interrupts()
+    try:
+        sys.stdout.flush()                # what is still buffered; its reader may have gone meanwhile
+    except BrokenPipeError:
+        _quiet_stdout()
+        status = EXIT_STDOUT_CLOSED if status == 0 else status
+    if status == EXIT_INTERRUPTED or _out_of_memory:
+        # what is left to run is the shutdown, which may wait on threads or need memory: end with the status
+        for f in (sys.stdout, sys.stderr):
+            try:
+                f.flush()
+            except OSError:
+                pass
+        os._exit(status)
+    return status
 
 
 def _terminate_as_interrupt() -> None:

@@ -37,12 +37,13 @@ def node_help(name: str) -> str:
     # lazy: rclpy takes ~1 s to load and only node commands need it
     import rclpy
     from rclpy.parameter import Parameter
+    from has_control.nodes.managed import AUTOSTART      # lazy: imports rclpy
     module, cls = NODES[name]
     node_class = getattr(import_module(f"has_control.nodes.{module}"), cls)
     context = rclpy.Context()
     rclpy.init(args=[], context=context)
     try:
-        overrides = [Parameter("autostart", value=False)] if name != "tuner" else []
+        overrides = [Parameter(AUTOSTART.name, value=False)] if name != "tuner" else []
         node = node_class(context=context, parameter_overrides=overrides, start_parameter_services=False,
                           enable_rosout=False)
         try:
@@ -50,8 +51,10 @@ def node_help(name: str) -> str:
             descriptors = node.describe_parameters(names)
             lines = []
             for key, desc in zip(names, descriptors):
-                value = node.get_parameter(key).value
+                # the node was made with autostart false (so it stays unconfigured): print the true default
+                value = AUTOSTART.default if key == AUTOSTART.name else node.get_parameter(key).value
                 value = list(value) if hasattr(value, "tolist") or isinstance(value, (list, tuple)) else value
+                # the descriptor derives from the component's table (has_control.config.table)
                 extra = [desc.additional_constraints] if desc.additional_constraints else []
                 if desc.read_only:
                     extra.append("read at start-up")
@@ -62,7 +65,7 @@ def node_help(name: str) -> str:
     finally:
         rclpy.try_shutdown(context=context)
     managed = (" as a managed (lifecycle) node: autostart (default true) configures and activates it"
-               if name != "tuner" else "")
+               if name != "tuner" else "; its settings are checked when set and read at each ~/start")
     return USAGE.format(name=name, managed=managed) + "\n".join(lines)
 
 

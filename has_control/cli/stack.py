@@ -5,14 +5,17 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from has_control import quiet_interrupts
-from has_control.cli.args import add_config, add_json, gains_arg, load, namespace, port, positive_int
+from has_control.common.interrupts import quiet_interrupts
+from has_control.cli.args import add_config, add_json, gains_arg, load, namespace, number, port, positive_int
 from has_control.cli.status import StatusLine
 from has_control.common.errors import HasControlError
 from has_control.cli.tune import check_method_options
 from has_control.tuning.bounds import BoundDiagnostics
 from has_control.tuning.methods import METHODS
 from has_control.tuning.tuner import load_tuning
+
+
+FOXGLOVE_WAIT_MAX = 3600.0       # [s] --foxglove-wait: an hour is a forgotten run, not a wait
 
 
 def add_arguments(p) -> None:
@@ -24,8 +27,9 @@ def add_arguments(p) -> None:
     p.add_argument("--record", metavar="DIR", help="record the run to a rosbag2 MCAP bag DIR")
     p.add_argument("--foxglove", nargs="?", type=port, const=8765, metavar="PORT",
                    help="serve the run's topics live to Foxglove on ws://127.0.0.1:PORT (default 8765)")
-    p.add_argument("--foxglove-wait", type=float, default=0.0, metavar="S",
-                   help="with --foxglove: wait up to S seconds for a client to subscribe before the run")
+    p.add_argument("--foxglove-wait", type=number(0.0, FOXGLOVE_WAIT_MAX), metavar="S",
+                   help=f"with --foxglove: wait up to S seconds (0..{FOXGLOVE_WAIT_MAX:g}) for a client to "
+                        "subscribe before the run")
     p.add_argument("--realtime", action="store_true",
                    help="pace the loop to wall time (paced lock-step; misses and lateness in --json)")
     p.add_argument("--tune", action="store_true",
@@ -51,6 +55,9 @@ def new_bag_path(text: str) -> Path:
 
 
 def run(args) -> int:
+    if args.foxglove_wait is not None and args.foxglove is None:
+        raise HasControlError(f"--foxglove-wait {args.foxglove_wait:g}: only with --foxglove (there is no live view "
+                              "to wait for)")
     with quiet_interrupts():                  # rclpy and the nodes' kernels load here
         # lazy: rclpy and the nodes' compiled steps load only for the commands that run nodes, under
         # quiet_interrupts so that a Ctrl-C while they load is one line
@@ -72,7 +79,7 @@ def run(args) -> int:
     try:
         result = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True, record=record,
                            realtime=args.realtime, progress=progress if line and line.enabled else None,
-                           foxglove=args.foxglove, foxglove_wait=args.foxglove_wait,
+                           foxglove=args.foxglove, foxglove_wait=args.foxglove_wait or 0.0,
                            announce=lambda text: print(text, flush=True))
     finally:
         if line:

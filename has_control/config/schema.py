@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any, Iterable, Mapping
 
 from has_control.common.errors import ConfigError, shown
 from has_control.config.params_file import read_parameter_files
+from has_control.config.table import Param
 from has_control.core.params import (
     DELAY_MAX, NOISE_ADDED_BY, ROAD_CLASSES, SUBSTEPS_MAX, VELOCITY_SOURCES, X3D_MODES, REFERENCE_KINDS, Actuator,
     Adaptation, Config, Episode, Gains, Noise, Plant, Reference,
@@ -53,36 +53,7 @@ GAIN_MAX = 1.0e6                    # [1/s]; the nodes' range descriptor on gain
 
 def check_gain(v: float) -> str | None:
     """The range of a back-stepping gain (config, --gains, tuning bounds)."""
-    return None if 0 < v <= GAIN_MAX else f"must be > 0 and <= {GAIN_MAX:g}"
-
-
-def _positive(v: float) -> str | None:
-    return None if v > 0 else "must be > 0"
-
-
-def _non_negative(v: float) -> str | None:
-    return None if v >= 0 else "must be >= 0"
-
-
-def _any(v: float) -> str | None:
-    return None
-
-
-def _int_range(lo: int, hi: int) -> Callable[[int], str | None]:
-    def inner(v: int) -> str | None:
-        return None if lo <= v <= hi else f"must be a whole number in [{lo}, {hi}]"
-    inner.bounds = (lo, hi)
-    return inner
-
-
-def _pair(check: Callable[[float], str | None]) -> Callable[[Any], str | None]:
-    def inner(v):
-        for x in v:
-            msg = check(x)
-            if msg:
-                return msg
-        return None
-    return inner
+    return _GAIN.check(v)
 
 
 #: A seed: a whole number in [0, SEED_LIMIT).
@@ -95,67 +66,140 @@ def is_seed(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and 0 <= v < SEED_LIMIT
 
 
-# key -> (section attribute, field name, kind, check)
-#   kind: "float", "pair" (two floats), "int" (a whole number), "seed" (a whole number in [0, SEED_LIMIT)),
-#   or a dict of allowed strings
-_SCHEMA: dict[str, tuple[str, str, Any, Callable]] = {}
+_POS = dict(lower=0.0, lower_open=True)               # > 0
+_NONNEG = dict(lower=0.0)                             # >= 0
+_GAIN_RANGE = dict(lower=0.0, lower_open=True, upper=GAIN_MAX)
 
 
-def _register(prefix: str, section: str, fields: Mapping[str, tuple[Any, Callable]]):
-    for name, (kind, check) in fields.items():
-        _SCHEMA[f"{prefix}.{name}"] = (section, name, kind, check)
+def _double(name: str, unit: str, text: str, **rng) -> Param:
+    return Param(name, "double", unit=unit, text=text, **rng)
 
 
-_register("actuator", "actuator", {
-    "mass": ("float", _positive), "area_cap": ("float", _positive),
-    "area_rod": ("float", _positive), "bulk_modulus": ("float", _positive),
-    "damping": ("float", _non_negative), "leakage": ("float", _non_negative),
-    "volume_cap0": ("float", _positive), "volume_rod0": ("float", _positive),
-    "gravity": ("float", _non_negative), "supply_pressure": ("float", _positive),
-    "return_pressure": ("float", _non_negative),
-    "discharge_coefficient": ("float", _positive), "area_gradient": ("float", _positive),
-    "oil_density": ("float", _positive), "valve_gain": ("float", _positive),
-})
-_register("gains", "gains", {k: ("float", check_gain) for k in ("k1", "k2", "k3")})
-_register("adaptation", "adaptation", {
-    "gain": ("pair", _pair(_non_negative)), "initial": ("pair", _pair(_any)),
-    "lower": ("pair", _pair(_any)), "upper": ("pair", _pair(_any)),
-    "x3d_derivative": (X3D_MODES, None),
-})
-_register("reference", "reference", {
-    "kind": (REFERENCE_KINDS, None), "amplitude": ("float", _any),
-    "omega": ("float", _positive), "offset": ("float", _any), "t0": ("float", _non_negative),
-    "rise": ("float", _non_negative), "f0": ("float", _non_negative),
-    "f1": ("float", _non_negative), "sweep": ("float", _positive),
-    "road_class": (ROAD_CLASSES, None), "speed": ("float", _positive), "cutoff": ("float", _positive),
-    "seed": ("seed", None),
-})
-_register("plant", "plant", {
-    "mass": ("float", _positive), "bulk_modulus": ("float", _positive),
-    "damping": ("float", _non_negative), "leakage": ("float", _non_negative),
-    "supply_pressure": ("float", _positive), "valve_gain": ("float", _positive),
-    "valve_limit": ("float", _non_negative), "valve_time_constant": ("float", _non_negative),
-    "valve_frequency": ("float", _non_negative), "valve_damping_ratio": ("float", _positive),
-    "delay": ("int", _int_range(0, DELAY_MAX)), "substeps": ("int", _int_range(1, SUBSTEPS_MAX)),
-    "friction_coulomb": ("float", _non_negative), "friction_stribeck": ("float", _non_negative),
-    "stribeck_velocity": ("float", _positive), "friction_smoothing": ("float", _positive),
-    "validated_band": ("float", _non_negative),
-})
-_register("noise", "noise", {
-    "position": ("float", _non_negative), "velocity": ("float", _non_negative),
-    "pressure_cap": ("float", _non_negative), "pressure_rod": ("float", _non_negative),
-    "seed": ("seed", None), "added_by": (NOISE_ADDED_BY, None),
-    "position_resolution": ("float", _non_negative), "pressure_resolution": ("float", _non_negative),
-    "velocity_source": (VELOCITY_SOURCES, None), "velocity_filter_frequency": ("float", _non_negative),
-})
-_register("simulation", "episode", {
-    "step": ("float", _positive), "horizon": ("float", _positive),
-    "y_limit": ("float", _positive),
-})
-_register("cost", "episode", {k: ("float", _non_negative) for k in ("lambda1", "lambda2", "lambda3")})
-_register("metrics", "episode", {
-    "skip_start": ("float", _non_negative), "skip_end": ("float", _non_negative),
-})
+def _pair(name: str, unit: str, text: str, **rng) -> Param:
+    return Param(name, "double[]", unit=unit, text=text, length=2, **rng)
+
+
+def _choice(name: str, text: str, choices: Mapping[str, Any]) -> Param:
+    return Param(name, "str", text=text, choices=tuple(choices))
+
+
+def _int(name: str, unit: str, text: str, lower: int, upper: int) -> Param:
+    return Param(name, "int", unit=unit, text=text, lower=lower, upper=upper)
+
+
+def _seed(name: str, text: str) -> Param:
+    return Param(name, "int", text=text, lower=0, upper=SEED_LIMIT - 1, range_words=f"in {SEED_RANGE}")
+
+
+_GAIN = _double("k", "1/s", "a back-stepping gain", **_GAIN_RANGE)
+
+#: The episode's configuration: dotted key -> (Config section attribute, field name, its Param).
+#: Defaults come from the shipped config/*.yaml (:func:`load_config`), not from here.
+_SCHEMA: dict[str, tuple[str, str, Param]] = {}
+
+
+def _register(prefix: str, section: str, params: Iterable[Param]) -> None:
+    for p in params:
+        _SCHEMA[f"{prefix}.{p.name}"] = (section, p.name, dataclasses.replace(p, name=f"{prefix}.{p.name}"))
+
+
+_register("actuator", "actuator", (
+    _double("mass", "kg", "m, moving mass", **_POS),
+    _double("area_cap", "m^2", "A1, piston area, cap side", **_POS),
+    _double("area_rod", "m^2", "A2, piston area, rod side", **_POS),
+    _double("bulk_modulus", "Pa", "beta_e, effective bulk modulus", **_POS),
+    _double("damping", "N s/m", "Bp, viscous damping", **_NONNEG),
+    _double("leakage", "m^3/(s Pa)", "Ci, internal leakage", **_NONNEG),
+    _double("volume_cap0", "m^3", "V01, initial cap-side volume", **_POS),
+    _double("volume_rod0", "m^3", "V02, initial rod-side volume", **_POS),
+    _double("gravity", "m/s^2", "g", **_NONNEG),
+    _double("supply_pressure", "Pa", "Ps, supply pressure", **_POS),
+    _double("return_pressure", "Pa", "Pr, return pressure", **_NONNEG),
+    _double("discharge_coefficient", "-", "Cd, discharge coefficient", **_POS),
+    _double("area_gradient", "m", "W, valve area gradient", **_POS),
+    _double("oil_density", "kg/m^3", "rho, oil density", **_POS),
+    _double("valve_gain", "m^2/(s sqrt(Pa))", "G = sqrt(2) Cd W sqrt(1/rho) ki, ki = 1 (Table 1 value)", **_POS),
+))
+_register("gains", "gains", (
+    _double("k1", "1/s", "back-stepping gain k1 (the paper's manual set)", **_GAIN_RANGE),
+    _double("k2", "1/s", "back-stepping gain k2 (the paper's manual set)", **_GAIN_RANGE),
+    _double("k3", "1/s", "back-stepping gain k3 (the paper's manual set)", **_GAIN_RANGE),
+))
+_register("adaptation", "adaptation", (
+    _pair("gain", "", 'sigma1, sigma2 (paper prints "10 x 10^-50")', **_NONNEG),
+    _pair("initial", "", "a_hat(0) = (Bp, Ci) estimates"),
+    _pair("lower", "", "a_min"),
+    _pair("upper", "", "a_max"),
+    _choice("x3d_derivative", "analytic (reference) | backward_difference", X3D_MODES),
+))
+_register("reference", "reference", (
+    _choice("kind", "zero | sine | step | chirp | road", REFERENCE_KINDS),
+    _double("amplitude", "m", "amplitude"),
+    _double("omega", "rad/s", "sine angular frequency", **_POS),
+    _double("offset", "m", "offset"),
+    _double("t0", "s", "step time", **_NONNEG),
+    _double("rise", "s", "step rise time (0: hard step)", **_NONNEG),
+    _double("f0", "Hz", "chirp start frequency", **_NONNEG),
+    _double("f1", "Hz", "chirp end frequency", **_NONNEG),
+    _double("sweep", "s", "chirp sweep duration", **_POS),
+    _choice("road_class", "road: ISO 8608 class A..E", ROAD_CLASSES),
+    _double("speed", "m/s", "road: vehicle speed", **_POS),
+    _double("cutoff", "Hz", "road: highest frequency the actuator is asked to follow", **_POS),
+    _seed("seed", "road: random phases"),
+))
+_register("plant", "plant", (
+    *(_double(name, unit, f"the plant's own {name} (default: actuator.{name})", **rng) for name, unit, rng in (
+        ("mass", "kg", _POS), ("bulk_modulus", "Pa", _POS), ("damping", "N s/m", _NONNEG),
+        ("leakage", "m^3/(s Pa)", _NONNEG), ("supply_pressure", "Pa", _POS),
+        ("valve_gain", "m^2/(s sqrt(Pa))", _POS))),
+    _double("valve_limit", "m", "u_max, spool travel |u| <= u_max (0: no limit)", **_NONNEG),
+    _double("valve_time_constant", "s", "tau_v, first-order valve lag (0: ideal valve; else >= simulation.step)",
+            **_NONNEG),
+    _double("valve_frequency", "Hz", "f_n, second-order spool (0: not second order; excludes valve_time_constant)",
+            **_NONNEG),
+    _double("valve_damping_ratio", "-", "zeta of the second-order spool", **_POS),
+    _int("delay", "samples", "transport delay of the command", 0, DELAY_MAX),
+    _int("substeps", "", "RK4 steps per sample, the command held", 1, SUBSTEPS_MAX),
+    _double("friction_coulomb", "N", "Fc, Coulomb friction on the piston (0: none)", **_NONNEG),
+    _double("friction_stribeck", "N", "Fs, static (breakaway) friction (0 with Fc = 0: none)", **_NONNEG),
+    _double("stribeck_velocity", "m/s", "v_s, Stribeck velocity", **_POS),
+    _double("friction_smoothing", "m/s", "eps, the friction's sign is v/sqrt(v^2 + eps^2)", **_POS),
+    _double("validated_band", "Hz", "identify's validated band for this plant (0: not stated; tune vouches above it)",
+            **_NONNEG),
+))
+_register("noise", "noise", (
+    _double("position", "m", "standard deviation on y", **_NONNEG),
+    _double("velocity", "m/s", "standard deviation on ydot", **_NONNEG),
+    _double("pressure_cap", "Pa", "standard deviation on P1", **_NONNEG),
+    _double("pressure_rod", "Pa", "standard deviation on P2", **_NONNEG),
+    _seed("seed", "the noise is a pure function of (seed, sample, channel)"),
+    _choice("added_by", "controller (adds it to the true states it reads) | plant (publishes readings)",
+            NOISE_ADDED_BY),
+    _double("position_resolution", "m", "readings of y rounded to multiples of this (0: none), after the noise",
+            **_NONNEG),
+    _double("pressure_resolution", "Pa", "readings of P1, P2 rounded to multiples of this (0: none)", **_NONNEG),
+    _choice("velocity_source", "measured (ydot plus its noise) | derived ((y_i - y_i-1)/step of the readings)",
+            VELOCITY_SOURCES),
+    _double("velocity_filter_frequency", "Hz", "first-order filter of a derived velocity (0: unfiltered)",
+            **_NONNEG),
+))
+_register("simulation", "episode", (
+    _double("step", "s", "sampling time and RK4 step", **_POS),
+    _double("horizon", "s", "episode length; n = round(horizon/step) samples", **_POS),
+    _double("y_limit", "m", "|y| beyond this means the run diverged", **_POS),
+))
+_register("cost", "episode", (
+    _double("lambda1", "", "weight of |e1|", **_NONNEG),
+    _double("lambda2", "", "weight of u^2", **_NONNEG),
+    _double("lambda3", "", "overshoot penalty on |e1| when e1 < 0", **_NONNEG),
+))
+_register("metrics", "episode", (
+    _double("skip_start", "s", "steady-state window starts here", **_NONNEG),
+    _double("skip_end", "s", "... and ends this long before the horizon", **_NONNEG),
+))
+
+#: The configuration's table (dotted key -> Param): descriptors, --help and the YAML comments derive from it.
+CONFIG_TABLE: dict[str, Param] = {key: p for key, (_, _, p) in _SCHEMA.items()}
 
 #: Keys that belong to the nodes and tools, not to the episode; accepted and
 #: passed through (their owners validate them).
@@ -174,37 +218,6 @@ def finite_number(v: Any) -> float | str:
     return v if math.isfinite(v) else "must be finite"
 
 
-def _coerce(key: str, value: Any, kind: Any, source: str) -> Any:
-    def bad(why: str) -> ConfigError:
-        return ConfigError(f"{source}: {key} = {shown(value)}: {why}")
-
-    def number(v: Any) -> float:
-        v = finite_number(v)
-        if isinstance(v, str):
-            raise bad(v)
-        return v
-
-    if kind == "float":
-        return number(value)
-    if kind == "pair":
-        if not isinstance(value, (list, tuple)) or len(value) != 2:
-            raise bad("expected a list of two numbers")
-        return tuple(number(v) for v in value)
-    if kind == "int":
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise bad("expected a whole number")
-        return value
-    if kind == "seed":
-        if not is_seed(value):
-            raise bad(f"expected a whole number in {SEED_RANGE}")
-        return value
-    if isinstance(kind, Mapping):
-        if not isinstance(value, str) or value not in kind:
-            raise bad(f"expected one of {', '.join(sorted(kind))}")
-        return value
-    raise AssertionError(kind)
-
-
 def build_config(flat: Mapping[str, Any], source: str = "parameters",
                  base: Config | None = None, sources: Mapping[str, str] | None = None) -> Config:
     """Validated :class:`Config` from flat dotted parameters over ``base``.
@@ -221,12 +234,12 @@ def build_config(flat: Mapping[str, Any], source: str = "parameters",
             continue
         if key not in _SCHEMA:
             raise ConfigError(f"{where(key)}: {key}: unknown parameter")
-        section, attr, kind, check = _SCHEMA[key]
-        v = _coerce(key, value, kind, where(key))
-        if check is not None:
-            msg = check(v)
-            if msg:
-                raise ConfigError(f"{where(key)}: {key} = {shown(value)}: {msg}")
+        section, attr, param = _SCHEMA[key]
+        why = param.check(value)
+        if why:
+            raise ConfigError(f"{where(key)}: {key} = {shown(value)}: {why}")
+        v = param.coerce(value)
+        v = tuple(float(x) for x in v) if param.is_array else (float(v) if param.type == "double" else v)
         sections[section][attr] = v
     cfg = Config(
         actuator=Actuator(**sections["actuator"]), gains=Gains(**sections["gains"]),
@@ -319,51 +332,11 @@ def load_config(paths: Iterable[str | Path] = (), defaults: bool = True) -> Conf
 def config_parameters(cfg: Config) -> dict[str, Any]:
     """The inverse of :func:`build_config`: flat ROS parameters of a Config."""
     out: dict[str, Any] = {}
-    for key, (section, attr, kind, _) in _SCHEMA.items():
+    for key, (section, attr, param) in _SCHEMA.items():
         v = getattr(getattr(cfg, section), attr)
         if v is None:                          # a plant parameter that is the model's
             continue
-        out[key] = list(v) if kind == "pair" else v
-    return out
-
-
-def parameter_kind(key: str) -> tuple[Any, tuple[float, bool] | None, float | None]:
-    """What a config key takes, for parameter descriptors: its kind ("float",
-    "pair" or a dict of allowed strings), its lower bound (value, inclusive)
-    and its upper bound (inclusive), where its check has them."""
-    _, _, kind, check = _SCHEMA[key]
-    lower, upper = {_positive: ((0.0, False), None), _non_negative: ((0.0, True), None),
-                    check_gain: ((0.0, False), GAIN_MAX)}.get(check, (None, None))
-    if lower is None and kind == "pair":
-        lower = {"gain": (0.0, True)}.get(key.rsplit(".", 1)[-1])
-    if kind == "seed":
-        lower, upper = (0.0, True), SEED_LIMIT - 1
-    if kind == "int":
-        lo, hi = check.bounds
-        lower, upper = (float(lo), True), hi
-    return kind, lower, upper
-
-
-def parameter_comments(files: Iterable[str | Path] | None = None) -> dict[str, str]:
-    """The comment after each key in the shipped YAML files (their units and
-    meaning), by dotted key, for parameter descriptors."""
-    out: dict[str, str] = {}
-    for f in files if files is not None else default_config_files():
-        stack: list[tuple[int, str, str]] = []          # (indent, section, its comment)
-        for line in Path(f).read_text().splitlines():
-            m = re.match(r"^(\s*)([A-Za-z_][\w]*):\s*([^#]*?)\s*(?:#\s*(.*))?$", line)
-            if not m:
-                continue
-            indent, key, value, comment = len(m.group(1)), m.group(2), m.group(3), (m.group(4) or "").strip()
-            while stack and stack[-1][0] >= indent:
-                stack.pop()
-            if value:
-                dotted = ".".join([k for _, k, _ in stack if k != "ros__parameters"] + [key])
-                inherited = next((c for _, _, c in reversed(stack) if c), "")
-                if comment or inherited:
-                    out[dotted] = comment or inherited
-            else:
-                stack.append((indent, key, comment))
+        out[key] = list(v) if param.is_array else v
     return out
 
 

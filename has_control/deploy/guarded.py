@@ -33,11 +33,13 @@ from has_control.core.episode import (
     _A1, _A2, _GENERAL_ROWS, _J, _K1, _K2, _K3, _M2, _MEAN, _PEAK, _X1, _X2, _X3, _X4, EpisodeArrays, _constants,
     general_sample_step, put_trace_row, simulate,
 )
-from has_control.core.jit import KERNEL
+from has_control.core.jit import KERNEL, LEAF
 from has_control.core.noise import measurement_noise
 from has_control.core.params import A1_INIT, A2_INIT, Config
 from has_control.core.reference import reference
-from has_control.deploy.watchdog import REASONS, WATCHDOG_STATE, WatchdogLimits, watchdog_reset, watchdog_update
+from has_control.deploy.stepping import (FALLEN, PLAN_STATE, STEP, TRIP2_AT, TRIP2_REASON, TRIP_AT, TRIP_REASON,
+                                         TRIP_STEP, plan_switch, plan_watch)
+from has_control.deploy.watchdog import REASONS, WATCHDOG_STATE, WatchdogLimits
 
 #: Events of a run: (sample tripped, reason, step at the trip, second trip sample, its reason).
 _EVENTS = 5
@@ -153,17 +155,14 @@ def _guarded(schedule, switches, lim, ap, pp, cp, rp, sp, seed, ep, x0, trace, e
     s[_A1, 0] = cp[A1_INIT]
     s[_A2, 0] = cp[A2_INIT]
     w = np.zeros(WATCHDOG_STATE)
-    for k in range(_EVENTS):
-        events[k] = -1.0
-    step = 0
-    fallen = 0                        # 0: stepping; 1: on the last held gains; 2: on the safe gains
+    d = np.empty(PLAN_STATE)
+    d[:] = -1.0
+    d[STEP] = d[FALLEN] = 0.0
     count = 0.0
-    nsteps = schedule.shape[0]
     for i in range(n):
-        if fallen == 0 and step < nsteps and i == switches[step]:
-            s[_K1, 0], s[_K2, 0], s[_K3, 0] = schedule[step, 0], schedule[step, 1], schedule[step, 2]
-            watchdog_reset(w)
-            step += 1
+        row = plan_switch(d, i, switches, w)
+        if row >= 0:
+            s[_K1, 0], s[_K2, 0], s[_K3, 0] = schedule[row, 0], schedule[row, 1], schedule[row, 2]
         r0, r1, r2, r3 = reference(rp, i * dt)
         n1, n2, n3, n4 = measurement_noise(sp, seed, i) if noisy else (0.0, 0.0, 0.0, 0.0)
         in_window = lo <= i <= hi
@@ -177,25 +176,21 @@ def _guarded(schedule, switches, lim, ap, pp, cp, rp, sp, seed, ep, x0, trace, e
             put_trace_row(trace[i], i * dt, r0, x1, x2, x3, x4, u, e1, e2, e3, a1_hat, a2_hat)
             trace[i, 12], trace[i, 13], trace[i, 14] = k1, k2, k3
         if bad:
+            _events(d, events)
             return math.inf, math.inf, math.inf, math.inf, i + 1, True, -1
-        reason = watchdog_update(w, u, e1, lim)
-        if step < 2 and fallen == 0:
-            reason = 0                   # the safe gains' settling (a start-up transient) is not a deployment's
-        if reason != 0 and fallen < 2:
-            if fallen == 0:
-                events[0], events[1], events[2] = i, reason, step - 1
-                back = max(step - 2, 0)          # the row before the one in effect: it held a whole step
-                s[_K1, 0], s[_K2, 0], s[_K3, 0] = schedule[back, 0], schedule[back, 1], schedule[back, 2]
-                fallen = 1 if back > 0 else 2
-            else:
-                events[3], events[4] = i, reason
-                s[_K1, 0], s[_K2, 0], s[_K3, 0] = schedule[0, 0], schedule[0, 1], schedule[0, 2]
-                fallen = 2
-            watchdog_reset(w)
-            w[4] = 0.0
-            w[3] = -lim[7]            # judge the fallback gains only after a whole window of them
+        back = plan_watch(d, w, i, u, e1, lim)
+        if back >= 0:
+            s[_K1, 0], s[_K2, 0], s[_K3, 0] = schedule[back, 0], schedule[back, 1], schedule[back, 2]
+    _events(d, events)
     e_max, e_mu, e_sigma = metric_finish(count, s[_MEAN, 0], s[_M2, 0], s[_PEAK, 0])
-    return s[_J, 0], e_max, e_mu, e_sigma, n, False, step - 1 if fallen == 0 else -1
+    return s[_J, 0], e_max, e_mu, e_sigma, n, False, int(d[STEP]) - 1 if d[FALLEN] == 0.0 else -1
+
+
+@njit(**LEAF)
+def _events(d, events):
+    """(first trip's sample, reason, step, second trip's sample, reason) of the plan's state."""
+    events[0], events[1], events[2] = d[TRIP_AT], d[TRIP_REASON], d[TRIP_STEP]
+    events[3], events[4] = d[TRIP2_AT], d[TRIP2_REASON]
 
 
 def deploy_in_process(cfg: Config, plan: DeploymentPlan, limits: WatchdogLimits | None = None,

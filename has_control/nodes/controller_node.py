@@ -63,12 +63,13 @@ malformed, conflicts and whether â1, â2 are within ``adaptation.lower..upper``
 import gc
 
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from has_control.common.errors import ConfigError
+from has_control.config.table import Param, refusal, table
 from has_control.loop.controller import ControllerProcess
 from has_control.loop.guards import Conflicts
 from has_control.loop.ports import INTERFACES, Outputs, make_port
@@ -77,25 +78,29 @@ from has_control.wire.topics import CONTROLLER_STATE, GAINS, REFERENCE
 from has_control.wire.joint_mapping import (DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC,
                                             DEFAULT_STATE_INTERFACES, parse_state_interfaces)
 from has_control.nodes.live_tap import node_tap
-from has_control.nodes.managed import autostart as bring_up_now, declare_autostart, refuse, state_label
-from has_control.nodes.runtime import (CONTROL_OFFERED_QOS, CONTROL_QOS, node_main,
-                                       publish_diagnostics, qos, raw_publish, spin,
+from has_control.nodes.managed import AUTOSTART, autostart as bring_up_now, refuse, state_label
+from has_control.nodes.runtime import (CONTROL_OFFERED_QOS, CONTROL_QOS, node_main, publish_diagnostics, qos,
+                                       raw_publish, spin,
                                        trigger_service)
-from has_control.nodes.parameters import config_from_node, declare_config
+from has_control.nodes.parameters import check_changes, config_from_node, declare_config, declare_table
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "noise.")
-#: The controller's own parameters: (name, default, meaning and unit, read-only).
-OWN_PARAMETERS = (
-    ("publish_internals", True, "publish ~/controller_state and ~/reference every sample", False),
-    ("interface", "has_control", "has_control (the plant's state/command JointStates) | ros2_control "
-     "(JointState from joint_states_topic, Float64MultiArray [u] on command_topic)", True),
-    ("joint_states_topic", DEFAULT_JOINT_STATES_TOPIC, "ros2_control: the sensor_msgs/JointState topic read", True),
-    ("command_topic", DEFAULT_COMMAND_TOPIC,
-     "ros2_control: the std_msgs/Float64MultiArray topic the valve command u [m] is written to", True),
-    ("state_interfaces", list(DEFAULT_STATE_INTERFACES),
-     "ros2_control: joint/interface of y [m], y_dot [m/s], P1 [Pa], P2 [Pa] "
-     "(interface: position, velocity or effort)", True),
-)
+#: The controller's own parameters (its table; the law's are :data:`~has_control.config.schema.CONFIG_TABLE`'s).
+OWN_PARAMETERS = table((
+    Param("publish_internals", "bool", True, text="publish ~/controller_state and ~/reference every sample"),
+    Param("interface", "str", "has_control", text="has_control (the plant's state/command JointStates) | "
+          "ros2_control (JointState from joint_states_topic, Float64MultiArray [u] on command_topic)",
+          choices=INTERFACES, read_only=True),
+    Param("joint_states_topic", "str", DEFAULT_JOINT_STATES_TOPIC,
+          text="ros2_control: the sensor_msgs/JointState topic read", read_only=True),
+    Param("command_topic", "str", DEFAULT_COMMAND_TOPIC,
+          text="ros2_control: the std_msgs/Float64MultiArray topic the valve command u [m] is written to",
+          read_only=True),
+    Param("state_interfaces", "str[]", list(DEFAULT_STATE_INTERFACES), length=4, read_only=True,
+          text="ros2_control: joint/interface of y [m], y_dot [m/s], P1 [Pa], P2 [Pa] "
+          "(interface: position, velocity or effort)"),
+    AUTOSTART,
+))
 _COMMAND_TYPES = {"JointState": JointState, "Float64MultiArray": Float64MultiArray}
 
 
@@ -109,12 +114,8 @@ class ControllerNode(LifecycleNode):
         """``tap(topic)``: a function taking every message published on ``topic`` (an in-process observer)."""
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES, read_only=("simulation.",))
-        for key, value, text, read_only in OWN_PARAMETERS:
-            desc = ParameterDescriptor(description=text, read_only=read_only)
-            if key == "interface":
-                desc.additional_constraints = f"one of: {', '.join(INTERFACES)}"
-            self.declare_parameter(key, value, desc)
-        autostart = declare_autostart(self)
+        declare_table(self, OWN_PARAMETERS.values())
+        autostart = bool(self.get_parameter("autostart").value)
         self.process: ControllerProcess | None = None
         self.port = None
         self.conflicts_guard = Conflicts(self.get_logger(), self._state_publishers, "conflicting states")
@@ -158,11 +159,12 @@ class ControllerNode(LifecycleNode):
     # --- lifecycle -----------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Validate the parameters, build the tables and the port, create the topics."""
-        param = {key: self.get_parameter(key).value for key, *_ in OWN_PARAMETERS}
+        param = {key: self.get_parameter(key).value for key in OWN_PARAMETERS}
         try:
-            if param["interface"] not in INTERFACES:
-                raise ValueError(f"parameter interface = {param['interface']!r}: expected one of "
-                                 f"{', '.join(INTERFACES)}")
+            for key in ("interface", "joint_states_topic", "command_topic"):
+                reason = refusal(OWN_PARAMETERS, key, param[key])
+                if reason is not None:
+                    raise ValueError(f"parameter {reason}")
             mapping = parse_state_interfaces(param["state_interfaces"])
             cfg = config_from_node(self, PREFIXES)
             process = ControllerProcess(cfg, self.get_logger())
@@ -187,7 +189,7 @@ class ControllerNode(LifecycleNode):
         out.command, out.command_again = raw_publish(self.command_pub, tap), self.command_pub.publish
         sub = self.create_subscription(JointState, port.state_topic, self._on_state, CONTROL_QOS, raw=port.raw)
         self._state_topic = sub.topic_name
-        self.publish_internals = out.publish_internals
+        self.publish_internals, self._outputs = out.publish_internals, out
         timer = self.create_timer(1.0, self._diagnose)
         self._entities = [sub, timer, self.command_pub, self.internals_pub, self.reference_pub, self.gains_pub,
                           self.diagnostics_pub]
@@ -239,16 +241,23 @@ class ControllerNode(LifecycleNode):
 
     # --- parameters --------------------------------------------------------
     def _on_set_parameters(self, params) -> SetParametersResult:
-        changes = {p.name: p.value for p in params if p.name.startswith(PREFIXES)}
-        if not changes or self.process is None:
-            return SetParametersResult(successful=True)
-        try:
-            cfg = config_from_node(self, PREFIXES, overrides=changes)
-        except ConfigError as exc:
-            reason = str(exc)
-            self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
+        """Checked by the tables and the core; the old values stay on a refusal. Accepted:
+        the law's parameters from the next sample (pending), ``publish_internals`` too."""
+        reason = check_changes(OWN_PARAMETERS, params)
+        if reason is not None:
             return SetParametersResult(successful=False, reason=reason)
-        self.process.propose(cfg)               # pending: applied at the next sample
+        changes = {p.name: p.value for p in params if p.name.startswith(PREFIXES)}
+        if changes and self.process is not None:
+            try:
+                cfg = config_from_node(self, PREFIXES, overrides=changes)
+            except ConfigError as exc:
+                reason = str(exc)
+                self.get_logger().warning(f"rejected {sorted(changes)}: {reason}")
+                return SetParametersResult(successful=False, reason=reason)
+            self.process.propose(cfg)               # pending: applied at the next sample
+        for p in params:
+            if p.name == "publish_internals" and self.process is not None:
+                self.publish_internals = self._outputs.publish_internals = bool(p.value)
         return SetParametersResult(successful=True)
 
     # --- control loop: read -> update -> write (the port) -------------------------
@@ -286,6 +295,10 @@ def main(args=None):
 
 def _serve(executor, node: ControllerNode) -> None:
     """A controller process: no collector pause between a state and its answer
-    (the once-a-second diagnostics collect instead), then serve until shutdown."""
+    (the once-a-second diagnostics collect instead), then serve until shutdown.
+    An unconfigured controller (``autostart: false``) says what it waits for."""
+    if not node.active:
+        node.get_logger().info(f"unconfigured: waiting for lifecycle transitions (ros2 lifecycle set "
+                               f"{node.get_fully_qualified_name()} configure, then activate)")
     gc.disable()
     spin(executor)

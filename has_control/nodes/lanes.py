@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
-from rclpy.parameter import Parameter
+from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from std_srvs.srv import Trigger
 
@@ -109,6 +109,17 @@ class Lane:
                     f"{self.controller_name}/get_parameters")
         return [v.double_value for v in res.values]
 
+    def parameters(self) -> dict[str, dict]:
+        """The controller's and the plant's parameters as they are now, read back
+        through their parameter services: {"controller": {name: value}, "plant": {...}}."""
+        out = {}
+        for role, client, name in (("controller", self.controller_params, self.controller_name),
+                                   ("plant", self.plant_params, self.plant_name)):
+            names = list(_wait(client.list_parameters(), 10.0, f"{name}/list_parameters").result.names)
+            values = _wait(client.get_parameters(names), 10.0, f"{name}/get_parameters").values
+            out[role] = {n: _python(v) for n, v in sorted(zip(names, values))}
+        return out
+
     def prepare(self, cfg) -> None:
         """The plant runs episodes of ``cfg``'s length (set once per length)."""
         n = cfg.episode.samples
@@ -152,6 +163,12 @@ class Lane:
             self.logger.warning(f"{exc}; scored +inf")
             return UNSCORED
         return (score.J, score.e_max, score.e_mu, score.e_sigma)
+
+
+def _python(value):
+    """A ParameterValue as plain Python (arrays as lists), for JSON."""
+    v = parameter_value_to_python(value)
+    return v.tolist() if hasattr(v, "tolist") else (list(v) if isinstance(v, (list, tuple)) else v)
 
 
 class GraphEvaluator:

@@ -12,17 +12,13 @@ an operator, a launch file's lifecycle manager or ``has-control stack``.
 """
 from __future__ import annotations
 
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.lifecycle import TransitionCallbackReturn
 
-AUTOSTART = ("autostart", True, "configure and activate at start-up (false: wait unconfigured for "
-             "lifecycle transitions, e.g. ros2 lifecycle set NODE configure)")
+from has_control.config.table import Param
 
-
-def declare_autostart(node, text: str = AUTOSTART[2]) -> bool:
-    """Declare ``autostart`` (read-only) on ``node``; its value."""
-    return bool(node.declare_parameter(AUTOSTART[0], AUTOSTART[1],
-                                       ParameterDescriptor(description=text, read_only=True)).value)
+#: A managed node's ``autostart`` (in the plant's and the controller's tables).
+AUTOSTART = Param("autostart", "bool", True, text="configure and activate at start-up (false: wait unconfigured "
+                  "for lifecycle transitions, e.g. ros2 lifecycle set NODE configure)", read_only=True)
 
 
 def bring_up(node) -> None:

@@ -1,30 +1,122 @@
-"""Declare a Config as ROS parameters and read it back, validated by the core."""
+"""Declare a component's parameter table (:class:`~has_control.config.table.Param`)
+as ROS parameters, check changes against it, and read a Config back, validated by the core.
+
+Every descriptor derives from the table: the meaning and unit, the range
+in ``additional_constraints`` and, where its bounds are closed, as a
+``FloatingPointRange``/``IntegerRange`` (rclpy then refuses a value outside
+with "out of range Min: …, Max: …"; an open bound such as ``> 0`` has no
+such range, which could only say it with a subnormal bound: the node's
+set-time check refuses it with the range in words), the choices, and
+``read_only``. A whole number given for a double parameter
+(``gains.k1:=300``, at start-up or at set time) is taken as that double.
+"""
 from __future__ import annotations
 
-import sys
-from typing import Any
+import math
+from typing import Any, Iterable, Mapping
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
-from has_control.config import build_config, config_parameters, load_config, parameter_comments, parameter_kind
+from has_control.common.errors import ConfigError
+from has_control.config import CONFIG_TABLE, Param, build_config, config_parameters, load_config, refusal
 from has_control.core.params import PLANT_OVERRIDES, Config
+
+_INT64_MAX = 2 ** 63 - 1
+
+
+def descriptor(p: Param, read_only: bool | None = None) -> ParameterDescriptor:
+    """The ROS descriptor of ``p`` (``read_only`` overrides the table's)."""
+    desc = ParameterDescriptor(description=p.comment(), read_only=p.read_only if read_only is None else read_only)
+    desc.additional_constraints = p.constraint()
+    closed = not (p.lower_open or p.upper_open)
+    if p.type in ("double", "double[]") and closed and (p.lower is not None or p.upper is not None):
+        desc.floating_point_range = [FloatingPointRange(
+            from_value=float(p.lower) if p.lower is not None else -math.inf,
+            to_value=float(p.upper) if p.upper is not None else math.inf, step=0.0)]
+    elif p.type == "int" and (p.lower is not None or p.upper is not None):
+        desc.integer_range = [IntegerRange(from_value=int(p.lower) if p.lower is not None else -_INT64_MAX - 1,
+                                           to_value=int(p.upper) if p.upper is not None else _INT64_MAX, step=1)]
+    return desc
+
+
+def declare_table(node: Node, params: Iterable[Param], values: Mapping[str, Any] | None = None,
+                  read_only: bool | None = None) -> None:
+    """Declare each of ``params`` on ``node`` with its default (or ``values[name]``)
+    and its descriptor; a start-up override of a whole number for a double is taken as the double.
+    Install :func:`accept_whole_numbers` once, so set time does the same."""
+    params = list(params)
+    coerce_overrides(node, params)
+    for p in params:
+        value = (values or {}).get(p.name, p.default)
+        node.declare_parameter(p.name, p.coerce(value), descriptor(p, read_only))
+    accept_whole_numbers(node)
+
+
+def coerce_overrides(node: Node, params: Iterable[Param]) -> None:
+    """The node's start-up overrides (``-p k:=v``, a params file) before they are
+    declared: one outside a range the descriptor carries (which rclpy would refuse
+    with its own exception) is one ConfigError line naming the parameter (others are
+    checked at configure, where a managed node stays unconfigured); a whole number
+    for a double parameter is made that double."""
+    overrides = node._parameter_overrides          # rclpy keeps them here until declared
+    for p in params:
+        given = overrides.get(p.name)
+        ranged = descriptor(p).floating_point_range or descriptor(p).integer_range
+        reason = refusal({p.name: p}, p.name, given.value) if given is not None and ranged else None
+        if reason is not None:
+            raise ConfigError(f"parameter of {node.get_fully_qualified_name()}: {reason}")
+        if given is not None and p.type in ("double", "double[]"):
+            value = p.coerce(given.value)
+            if value != given.value or type(value) is not type(given.value):
+                overrides[p.name] = Parameter(p.name, value=value)
+
+
+def accept_whole_numbers(node: Node) -> None:
+    """A pre-set callback (once per node): a whole number set on a double
+    parameter (``ros2 param set /controller gains.k1 300``) is set as that double."""
+    if getattr(node, "_whole_numbers_accepted", False):
+        return
+    node._whole_numbers_accepted = True
+
+    def pre_set(parameters: list[Parameter]) -> list[Parameter]:
+        out = []
+        for p in parameters:
+            kind = node._descriptors.get(p.name)
+            want = kind.type if kind is not None else None
+            if want == Parameter.Type.DOUBLE.value and p.type_ == Parameter.Type.INTEGER:
+                p = Parameter(p.name, value=float(p.value))
+            elif want == Parameter.Type.DOUBLE_ARRAY.value and p.type_ == Parameter.Type.INTEGER_ARRAY:
+                p = Parameter(p.name, value=[float(v) for v in p.value])
+            out.append(p)
+        return out
+    node.add_pre_set_parameters_callback(pre_set)
+
+
+def check_changes(params: Mapping[str, Param], changes: Iterable[Parameter]) -> str | None:
+    """The first of ``changes`` the table refuses (``name = value: why``), or None."""
+    for p in changes:
+        reason = refusal(params, p.name, p.value)
+        if reason is not None:
+            return reason
+    return None
 
 
 def declare_config(node: Node, prefixes: tuple[str, ...], cfg: Config | None = None,
                    read_only: tuple[str, ...] = ()) -> None:
-    """Declare every parameter of ``cfg`` under ``prefixes`` (e.g. 'actuator.', 'gains.').
+    """Declare every parameter of ``cfg`` under ``prefixes`` (e.g. 'actuator.', 'gains.'),
+    described by :data:`~has_control.config.schema.CONFIG_TABLE`.
 
     Defaults come from the shipped config/*.yaml; a ``--params-file`` overrides
-    them. Each descriptor carries the meaning and unit (the YAML's comment),
-    the range the core enforces (> 0 excludes 0), the allowed strings of an
-    enumeration, and ``read_only`` for keys under ``read_only`` (read at start-up).
+    them. Keys under ``read_only`` are read at start-up only.
     """
     cfg = cfg or load_config()
-    comments = parameter_comments()
-    for key, value in config_parameters(cfg).items():
-        if key.startswith(prefixes):
-            node.declare_parameter(key, value, describe(key, comments.get(key, key), key.startswith(read_only)))
+    values = {k: v for k, v in config_parameters(cfg).items() if k.startswith(prefixes)}
+    coerce_overrides(node, (CONFIG_TABLE[k] for k in values))
+    for key, value in values.items():
+        node.declare_parameter(key, value, descriptor(CONFIG_TABLE[key], key.startswith(read_only)))
+    accept_whole_numbers(node)
 
 
 def declare_plant_overrides(node: Node) -> None:
@@ -32,31 +124,11 @@ def declare_plant_overrides(node: Node) -> None:
     apart from the model (:data:`~has_control.core.params.PLANT_OVERRIDES`),
     read-only, defaulting to the node's ``actuator.<name>``: unset, the plant
     is the model."""
-    comments = parameter_comments()
-    for name in PLANT_OVERRIDES:
-        key = f"plant.{name}"
-        model = node.get_parameter(f"actuator.{name}").value
-        text = f"the plant's own {comments.get(f'actuator.{name}', name)}; default: actuator.{name}"
-        node.declare_parameter(key, model, describe(key, text, read_only=True))
-
-
-def describe(key: str, text: str, read_only: bool = False) -> ParameterDescriptor:
-    """The descriptor of config key ``key`` with description ``text``."""
-    kind, bound, upper = parameter_kind(key)
-    desc = ParameterDescriptor(description=text, read_only=read_only)
-    if isinstance(kind, dict):
-        desc.additional_constraints = f"one of: {', '.join(kind)}"
-    elif kind == "seed":
-        desc.integer_range = [IntegerRange(from_value=0, to_value=upper, step=1)]
-    elif bound is not None:
-        lower, inclusive = bound
-        if kind == "float":
-            desc.floating_point_range = [FloatingPointRange(
-                from_value=lower if inclusive else sys.float_info.min,
-                to_value=sys.float_info.max if upper is None else upper, step=0.0)]
-        else:
-            desc.additional_constraints = f"each {'>=' if inclusive else '>'} {lower:g}"
-    return desc
+    params = [CONFIG_TABLE[f"plant.{name}"] for name in PLANT_OVERRIDES]
+    coerce_overrides(node, params)
+    for p in params:
+        model = node.get_parameter(f"actuator.{p.name.split('.', 1)[1]}").value
+        node.declare_parameter(p.name, model, descriptor(p, read_only=True))
 
 
 def config_from_node(node: Node, prefixes: tuple[str, ...],
@@ -65,13 +137,13 @@ def config_from_node(node: Node, prefixes: tuple[str, ...],
     flat: dict[str, Any] = {}
     for prefix in prefixes:
         for name, p in node.get_parameters_by_prefix(prefix.rstrip(".")).items():
-            flat[f"{prefix}{name}"] = _plain(p.value)
-    flat.update({k: _plain(v) for k, v in (overrides or {}).items()})
+            flat[f"{prefix}{name}"] = plain(p.value)
+    flat.update({k: plain(v) for k, v in (overrides or {}).items()})
     return build_config(flat, source=f"parameter of {node.get_fully_qualified_name()}")
 
 
-def _plain(value: Any) -> Any:
-    """ROS double arrays arrive as array.array; the core takes lists."""
+def plain(value: Any) -> Any:
+    """ROS arrays arrive as array.array; the core takes lists."""
     if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
         return value.tolist()
     return value

@@ -83,7 +83,7 @@ import time
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rosgraph_msgs.msg import Clock
@@ -91,6 +91,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from has_control.common.errors import ConfigError
+from has_control.config.table import Param, refusal, table
 from has_control.loop.plant import PlantProcess
 from has_control.loop.ports import INTERFACES
 from has_control.loop.schedule import MODES, LoopStats, paced_summary, run_loop, schedule_of
@@ -102,50 +103,39 @@ from has_control.nodes.managed import AUTOSTART, autostart, refuse, state_label
 from has_control.nodes.runtime import (CONTROL_OFFERED_QOS, CONTROL_QOS, node_main,
                                        publish_diagnostics, qos, raw_publish,
                                        trigger_service)
-from has_control.nodes.parameters import config_from_node, declare_config, declare_plant_overrides
+from has_control.nodes.parameters import (check_changes, config_from_node, declare_config, declare_plant_overrides,
+                                          declare_table)
 
 PREFIXES = ("actuator.", "simulation.", "plant.", "noise.")
-#: The plant's own parameters: (name, default, meaning and unit).
-OWN_PARAMETERS = (
-    ("mode", "lockstep", "lockstep (as fast as the controller answers) | realtime (paced to wall time)"),
-    ("command_timeout", 0.5, "lock-step: wait this long for a command before the fail-safe [s of wall time]"),
-    ("startup_timeout", 5.0, "the first answer of a run, while a matched controller has not answered [s]"),
-    ("failsafe_samples", 10, "realtime: misses in a row before the valve is centred [samples]"),
-    ("realtime_priority", 50, "realtime: SCHED_FIFO priority of the loop, 0..99 (0: normal scheduling)"),
-    ("samples", 0, "samples per episode (0: until stopped)"),
+#: The plant's own parameters (its table; the model's are :data:`~has_control.config.schema.CONFIG_TABLE`'s).
+OWN_PARAMETERS = table((
+    Param("mode", "str", "lockstep", text="lockstep (as fast as the controller answers) | realtime (paced to "
+          "wall time)", choices=MODES, read_only=True),
+    Param("command_timeout", "double", 0.5, "s of wall time", "lock-step: wait this long for a command before "
+          "the fail-safe", lower=0.0, lower_open=True),
+    Param("startup_timeout", "double", 5.0, "s", "the first answer of a run, while a matched controller has not "
+          "answered", lower=0.0, lower_open=True),
+    Param("failsafe_samples", "int", 10, "samples", "realtime: misses in a row before the valve is centred",
+          lower=0),
+    Param("realtime_priority", "int", 50, "", "realtime: SCHED_FIFO priority of the loop (0: normal scheduling)",
+          lower=0, upper=99, read_only=True),
+    Param("samples", "int", 0, "samples", "samples per episode (0: until stopped)", lower=0),
     AUTOSTART,
-    ("keep_alive", False, "a served plant: episodes only on ~/start, kept serving after each"),
-    ("interface", "has_control", "has_control (state/command JointStates) | ros2_control (JointState on "
-     "joint_states_topic, Float64MultiArray [u] from command_topic, as a hardware driver)"),
-    ("joint_states_topic", DEFAULT_JOINT_STATES_TOPIC, "ros2_control: the sensor_msgs/JointState topic written"),
-    ("command_topic", DEFAULT_COMMAND_TOPIC, "ros2_control: the std_msgs/Float64MultiArray [u] topic read"),
-    ("drop_states", 0, "test hook: the state of every Nth sample is not published (0: none; else >= 2)"),
-)
-#: Read at start-up only.
-READ_ONLY = ("mode", "realtime_priority", "autostart", "interface", "joint_states_topic", "command_topic")
+    Param("keep_alive", "bool", False, text="a served plant: episodes only on ~/start, kept serving after each",
+          read_only=True),
+    Param("interface", "str", "has_control", text="has_control (state/command JointStates) | ros2_control "
+          "(JointState on joint_states_topic, Float64MultiArray [u] from command_topic, as a hardware driver)",
+          choices=INTERFACES, read_only=True),
+    Param("joint_states_topic", "str", DEFAULT_JOINT_STATES_TOPIC,
+          text="ros2_control: the sensor_msgs/JointState topic written", read_only=True),
+    Param("command_topic", "str", DEFAULT_COMMAND_TOPIC,
+          text="ros2_control: the std_msgs/Float64MultiArray [u] topic read", read_only=True),
+    Param("drop_states", "int", 0, "samples", "test hook: the state of every Nth sample is not published "
+          "(0: none; else >= 2)", lower=0, check_more=lambda n: "must be 0 (none) or >= 2" if n == 1 else None),
+))
 #: Parameters that change a running plant: where each lives in the process.
 LIVE = {"samples": "samples", "command_timeout": "schedule.timeout", "startup_timeout": "schedule.startup_timeout",
-        "drop_states": "drop_every"}
-
-
-def _invalid(name: str, value) -> str | None:
-    """Why ``value`` is not a valid ``name``, or None."""
-    if name == "samples" and not (isinstance(value, int) and value >= 0):
-        return f"samples = {value!r}: must be an integer >= 0"
-    if name in ("command_timeout", "startup_timeout") and not (
-            isinstance(value, float) and 0 < value < float("inf")):
-        return f"{name} = {value!r}: must be a number > 0 [s]"
-    if name == "failsafe_samples" and not (isinstance(value, int) and value >= 0):
-        return f"failsafe_samples = {value!r}: must be an integer >= 0"
-    if name == "realtime_priority" and not (isinstance(value, int) and 0 <= value <= 99):
-        return f"realtime_priority = {value!r}: must be an integer in 0..99 (0: normal scheduling)"
-    if name == "mode" and value not in MODES:
-        return f"mode = {value!r}: expected one of {', '.join(MODES)}"
-    if name == "interface" and value not in INTERFACES:
-        return f"interface = {value!r}: expected one of {', '.join(INTERFACES)}"
-    if name == "drop_states" and not (isinstance(value, int) and (value == 0 or value >= 2)):
-        return f"drop_states = {value!r}: must be 0 (none) or an integer >= 2"
-    return None
+        "failsafe_samples": "schedule.failsafe_samples", "drop_states": "drop_every"}
 
 
 class _Of:
@@ -204,11 +194,7 @@ class PlantNode(LifecycleNode):
         super().__init__(name, **kwargs)
         declare_config(self, PREFIXES, read_only=PREFIXES)
         declare_plant_overrides(self)
-        for name, value, text in OWN_PARAMETERS:
-            self.declare_parameter(name, value, ParameterDescriptor(
-                description=text, read_only=name in READ_ONLY,
-                additional_constraints={"mode": f"one of: {', '.join(MODES)}",
-                                        "interface": f"one of: {', '.join(INTERFACES)}"}.get(name, "")))
+        declare_table(self, OWN_PARAMETERS.values())
         self.configure_error = ""
         self.quiet = False                        # True: no "ready"/"inactive" lines (stack drives us)
         self.active = self.configured = False
@@ -226,11 +212,10 @@ class PlantNode(LifecycleNode):
     # --- lifecycle -----------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Validate the parameters, build the plant's tables, create the topics."""
-        value = {name: self.get_parameter(name).value for name, *_ in OWN_PARAMETERS}
+        value = {name: self.get_parameter(name).value for name in OWN_PARAMETERS}
         try:
-            for name in ("mode", "command_timeout", "startup_timeout", "failsafe_samples", "realtime_priority",
-                         "samples", "interface", "drop_states"):
-                reason = _invalid(name, value[name])
+            for name in OWN_PARAMETERS:
+                reason = refusal(OWN_PARAMETERS, name, value[name])
                 if reason is not None:
                     raise ValueError(f"parameter {reason}")
             cfg = config_from_node(self, PREFIXES)
@@ -316,12 +301,9 @@ class PlantNode(LifecycleNode):
         self.configured = False
 
     def _on_set_parameters(self, params) -> SetParametersResult:
-        for p in params:
-            reason = _invalid(p.name, p.value)
-            if reason is None and p.name in READ_ONLY:
-                reason = f"{p.name}: read at start-up only; restart the plant to change it"
-            if reason is not None:
-                return SetParametersResult(successful=False, reason=reason)
+        reason = check_changes(OWN_PARAMETERS, params)
+        if reason is not None:
+            return SetParametersResult(successful=False, reason=reason)
         if self.process is not None:
             for p in params:
                 if p.name in LIVE:
@@ -334,12 +316,14 @@ class PlantNode(LifecycleNode):
         if self.configured:
             self.process.reset()
 
-    def start(self) -> None:
-        """Run an episode from the current state (lock-step: publishes it now); only when active.
+    def start(self) -> str | None:
+        """Run an episode from the current state (lock-step: publishes it now); only when active
+        (else the reason, which ``~/start`` answers with success false).
         The executor's owner then runs :meth:`run` (``main``, ``stack``) or just spins."""
         if not self.active:
-            self.get_logger().warning(f"~/start refused: the plant is {state_label(self)}, not active")
-            return
+            reason = f"refused: the plant is {state_label(self)}, not active"
+            self.get_logger().warning(f"~/start {reason}")
+            return reason
         self.process.start()
         self.run_requested = True
 

@@ -16,6 +16,7 @@ the recording).
 from __future__ import annotations
 
 import heapq
+import struct
 import time
 from dataclasses import dataclass
 
@@ -46,10 +47,19 @@ def _qos(offered: str) -> QoSProfile:
                       else DurabilityPolicy.VOLATILE)
 
 
+SUBSCRIBER_TIMEOUT = 60.0            # [s] the longest wait for subscribers
+
+
 def replay(path, rate: float = 1.0, topics: list[str] | None = None,
-           context: rclpy.Context | None = None, wait_for_subscribers: float = 0.5) -> tuple[int, float]:
+           context: rclpy.Context | None = None, wait_for_subscribers: float = 0.5,
+           subscribers: int = 0, subscriber_timeout: float = SUBSCRIBER_TIMEOUT) -> tuple[int, float]:
     """Publish the bag's messages with their timing scaled by ``rate``; returns
-    (messages published, wall seconds)."""
+    (messages published, wall seconds).
+
+    ``subscribers`` N > 0: the first message goes out once one of the replayed topics
+    has N matched subscriptions (a subscriber started before gets the first state),
+    a BagError after ``subscriber_timeout`` s without; 0: after a fixed
+    ``wait_for_subscribers`` s for discovery."""
     bag = read_bag(path, topics=topics)
     if topics:
         missing = sorted(set(topics) - set(bag.types))
@@ -65,7 +75,10 @@ def replay(path, rate: float = 1.0, topics: list[str] | None = None,
                 for t in bag.types if bag.messages.get(t)}
         own_clock = "/clock" not in pubs
         clock = node.create_publisher(Clock, "/clock", 10) if own_clock else None
-        time.sleep(wait_for_subscribers)                 # let subscribers discover us
+        if subscribers > 0:
+            _wait_for(pubs, subscribers, subscriber_timeout)
+        else:
+            time.sleep(wait_for_subscribers)             # let subscribers discover us
         stream = heapq.merge(*[[(t_ns, topic, data) for t_ns, data in msgs]
                                for topic, msgs in bag.messages.items() if topic in pubs])
         t0_bag = bag.start_ns
@@ -83,6 +96,17 @@ def replay(path, rate: float = 1.0, topics: list[str] | None = None,
         seconds = time.perf_counter() - t0
         node.destroy_node()
         return count, seconds
+
+
+def _wait_for(pubs: dict, n: int, timeout: float) -> None:
+    """Until one of ``pubs`` has ``n`` matched subscriptions; a BagError after ``timeout`` s."""
+    end = time.monotonic() + timeout
+    while max(p.get_subscription_count() for p in pubs.values()) < n:
+        if time.monotonic() > end:
+            counts = ", ".join(f"{t} {p.get_subscription_count()}" for t, p in sorted(pubs.items()))
+            raise BagError(f"replay --wait-for-subscribers {n}: not {n} subscriber{'s' if n > 1 else ''} on one "
+                           f"topic within {timeout:g} s (matched: {counts})")
+        time.sleep(0.01)
 
 
 def _time(ns: int):
@@ -109,6 +133,8 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
     states, commands = bag.messages[st], bag.messages[cm]
     if not states or not commands:
         raise BagError(f"{path}: no messages on {st if not states else cm}")
+    _check_joint_states(path, st, states)
+    _check_joint_states(path, cm, commands)
     _, recorded_u, _, _ = cdr.joint_states([d for _, d in commands], cm)
     recorded_u = recorded_u[:, 0]
     params = config_parameters(cfg)
@@ -169,6 +195,31 @@ def replay_controller(path, tolerance: float = 0.0, context: rclpy.Context | Non
     bad = np.flatnonzero(~(diffs <= tolerance))
     return ReplayCheck(n, int(bad.size), float(diffs.max()) if n else 0.0,
                        int(bad[0]) if bad.size else None)
+
+
+def _check_joint_states(path, topic: str, messages: list) -> None:
+    """Before any is replayed: every JointState of ``topic`` is whole (the first one's
+    size and layout) and finite, else a BagError naming the bag, topic and message
+    (a damaged recording is bad input, exit 2, never a count of mismatches)."""
+    datas = [d for _, d in messages]
+    try:
+        cdr.joint_state_layout(datas[0])
+    except (cdr.CdrError, struct.error, IndexError, UnicodeDecodeError) as exc:
+        raise BagError(f"{path}: {topic}: message 0: not a readable JointState ({exc})") from None
+    size = len(datas[0])
+    for k, d in enumerate(datas):
+        if len(d) != size:
+            raise BagError(f"{path}: {topic}: message {k}: {'truncated' if len(d) < size else 'longer than the first'} "
+                           f"({len(d)} bytes, the first has {size}): a damaged recording")
+    try:
+        _, position, velocity, effort = cdr.joint_states(datas, topic)
+    except cdr.CdrError as exc:
+        raise BagError(f"{path}: {exc}") from None
+    finite = np.isfinite(position).all(axis=1) & np.isfinite(velocity).all(axis=1) & np.isfinite(effort).all(axis=1)
+    bad = np.flatnonzero(~finite)
+    if bad.size:
+        raise BagError(f"{path}: {topic}: message {int(bad[0])}: a value is not finite (NaN or inf; {bad.size} such "
+                       f"message{'s' if bad.size > 1 else ''}): a damaged recording cannot be replayed to a controller")
 
 
 def _reset(ex, driver, node: str) -> None:

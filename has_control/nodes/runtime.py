@@ -5,17 +5,25 @@ Names, types, joints and wire layouts of the topics are in
 """
 from __future__ import annotations
 
+import faulthandler
 import os
+import signal
 import sys
 import tempfile
+import threading
+import weakref
 from contextlib import contextmanager
 
 import rclpy
 from builtin_interfaces.msg import Time
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.logging import LoggingSeverity
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 
+from has_control.common.interrupts import exit_quietly_on_interrupt
 from has_control.common.errors import HasControlError, shown
 from has_control.config.params_file import read_parameter_file
 from has_control.core.actuator import joint_state
@@ -80,6 +88,24 @@ def publish_diagnostics(node, publisher, what: str, hardware_id: str, values: di
     msg = DiagnosticArray(status=[status])
     msg.header.stamp = node.get_clock().now().to_msg()
     publisher.publish(msg)
+    taps = _diagnostics_taps.get(node)
+    if taps:
+        from rclpy.serialization import serialize_message     # lazy: only a node whose diagnostics are tapped
+        data = serialize_message(msg)
+        for take in taps:
+            take(data)
+
+
+#: The taps a node's diagnostics go to besides its publisher (a live view): node -> [take(bytes)].
+_diagnostics_taps: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def tap_diagnostics(node, tap, topic: str = "/diagnostics") -> None:
+    """Hand every diagnostics message ``node`` publishes (:func:`publish_diagnostics`)
+    to ``tap(topic)`` as well, e.g. :meth:`~has_control.nodes.foxglove.LiveView.sink`,
+    so that a live view serves ``/diagnostics`` too. ``tap`` None: nothing."""
+    if tap is not None:
+        _diagnostics_taps.setdefault(node, []).append(tap(topic))
 
 
 def raw_publish(publisher, tap=None):
@@ -139,17 +165,81 @@ def spin(executor, done=lambda: False, period: float = 0.1) -> None:
         executor.spin_once(timeout_sec=period)
 
 
+class NodeSignals:
+    """Ctrl-C and SIGTERM for a node process, handled in one place.
+
+    rclpy's own handlers are off (``rclpy.init(signal_handler_options=NO)``):
+    they shut the context down under a running callback (a publish then fails:
+    "publisher's context is invalid") and chain to Python's handler, whose
+    KeyboardInterrupt raised inside a subscription or service callback ends in
+    rclpy's FATAL stack or, from a service handler, in C++'s ``terminate`` (exit
+    134). Here, until the node serves, a signal ends the process at once (one
+    line, 130: loading code, nothing to close); once it serves, the signal only
+    marks the stop (a plant's episode ends at the next sample) and the
+    executor's ``spin_once`` (:meth:`executor`) raises KeyboardInterrupt on its
+    return, where no callback runs. :func:`node_main` then closes the node and the context and
+    the command ends with one line, "interrupted", and status 130."""
+
+    SIGNALS = ("SIGINT", "SIGTERM")
+
+    def __init__(self):
+        self.received: list[int] = []
+        self.node = None
+        self._previous: dict = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for name in self.SIGNALS:
+            sig = getattr(signal, name)
+            if signal.getsignal(sig) is signal.SIG_IGN:
+                continue                           # ignored by whoever started us (a background job): stays so
+            self._previous[sig] = signal.signal(sig, self._loading)
+
+    def _loading(self, signum, frame) -> None:
+        exit_quietly_on_interrupt(signum, frame)
+
+    def _serving(self, signum, frame) -> None:
+        self.received.append(signum)
+        if hasattr(self.node, "finished"):
+            self.node.finished = True              # a plant's episode ends at the next sample
+
+    def executor(self, context=None):
+        """rclpy's EventsExecutor whose ``spin_once`` raises KeyboardInterrupt on its
+        return once a signal came while serving; later signals are deferred to it."""
+
+        received = self.received
+
+        class GuardedEventsExecutor(_rclpy.EventsExecutor):
+            def spin_once(self, timeout_sec=None):
+                super().spin_once(timeout_sec=timeout_sec)
+                if received:
+                    raise KeyboardInterrupt            # here no callback is running
+        context = context or rclpy.get_default_context()
+        faulthandler.enable()                          # as rclpy.experimental.EventsExecutor does
+        ex = GuardedEventsExecutor(context)
+        context.on_shutdown(ex.wake)
+        for sig in self._previous:
+            signal.signal(sig, self._serving)
+        return ex
+
+    def restore(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous.clear()
+
+
 def node_main(args, make_node, serve) -> None:
     """A node's ``main``: ``with rclpy.init(args=args):``, the node from
     ``make_node()`` on an EventsExecutor, then ``serve(executor, node)``.
 
     A bad parameter at start-up ends in one line naming it and exit status 2;
-    Ctrl-C and SIGTERM end the node cleanly."""
+    Ctrl-C and SIGTERM (:class:`NodeSignals`) close the node and the context,
+    then raise KeyboardInterrupt for the command line to end with one line and 130."""
     import gc
 
     from rclpy.exceptions import NameValidationException, ParameterException
     from rclpy.executors import ExternalShutdownException
-    from rclpy.experimental import EventsExecutor
 
     prog = (args or sys.argv)[0].split("/")[-1] if (args or sys.argv) else "node"
     try:
@@ -157,6 +247,9 @@ def node_main(args, make_node, serve) -> None:
     except HasControlError as exc:
         print(f"{prog}: error: {exc}".splitlines()[0], file=sys.stderr)
         raise SystemExit(2) from None
+    signals = NodeSignals()
+    signals.install()
+    interrupted = False
     try:
         with _init(args, prog):
             try:
@@ -164,12 +257,30 @@ def node_main(args, make_node, serve) -> None:
             except (HasControlError, ValueError, ParameterException, NameValidationException) as exc:
                 print(f"{prog}: error: {exc}".splitlines()[0], file=sys.stderr)
                 raise SystemExit(2) from None
-            executor = EventsExecutor()
+            signals.node = node
+            executor = signals.executor()
             executor.add_node(node)
             gc.freeze()                    # start-up's objects out of the collector's way of the loop
-            serve(executor, node)
-    except (KeyboardInterrupt, ExternalShutdownException):
+            try:
+                serve(executor, node)
+            except KeyboardInterrupt:
+                interrupted = True
+            finally:
+                if interrupted or signals.received:
+                    # the stop's one line is the command's: what a worker thread of the node (the tuner's
+                    # session) says while the node and the context close under it is not news
+                    node.get_logger().set_level(LoggingSeverity.FATAL)
+                executor.shutdown()
+                try:
+                    node.destroy_node()
+                except Exception:          # noqa: BLE001  already destroyed by serve; the stop goes on
+                    pass
+    except ExternalShutdownException:
         pass
+    finally:
+        signals.restore()
+    if interrupted or signals.received:
+        raise KeyboardInterrupt
 
 
 def params_files(argv) -> list[str]:
@@ -225,7 +336,7 @@ def _init(args, prog: str):
     refused = None
     with _stderr_held() as held:
         try:
-            init = rclpy.init(args=args)
+            init = rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)   # NodeSignals's
         except RCLError as exc:
             refused = exc
     if refused is not None:
@@ -242,12 +353,13 @@ def _init(args, prog: str):
 
 
 def trigger_service(node, name: str, action, message: str):
-    """A std_srvs/Trigger service ``name`` that calls ``action()`` and answers ``message``."""
+    """A std_srvs/Trigger service ``name`` that calls ``action()`` and answers ``message``,
+    or, when ``action()`` returns a reason (a string: it refused), success false with that reason."""
     from std_srvs.srv import Trigger
 
     def on_call(request, response):
-        action()
-        response.success = True
-        response.message = message
+        refused = action()
+        response.success = not isinstance(refused, str)
+        response.message = refused if isinstance(refused, str) else message
         return response
     return node.create_service(Trigger, name, on_call)

@@ -23,7 +23,7 @@ from has_control.core.cost import Score, score_arrays
 from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.managed import bring_up
-from has_control.nodes.runtime import borrowed_context, normalise_namespace, tee
+from has_control.nodes.runtime import borrowed_context, normalise_namespace, tap_diagnostics, tee
 from has_control.wire import cdr
 from has_control.wire.codec import column_label
 from has_control.wire.topics import FLOAT64_ARRAY, MEASURED_RUN_TOPICS, MISSED, MISSED_COLUMNS
@@ -164,6 +164,7 @@ class _Composed:
             params + [Parameter("publish_internals", value=internals), managed]))
         self.nodes.append(self.controller)
         for node in (self.plant, self.controller):
+            tap_diagnostics(node, live and live.sink)   # the live view serves /diagnostics too
             _bring_up(node)
         self.controller.record_trace(n)
         if realtime or self.measured:

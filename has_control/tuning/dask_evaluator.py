@@ -29,8 +29,14 @@ import argparse
 import asyncio
 import logging
 import math
+import os
 import re
+import signal
+import sys
+import threading
+import time
 import uuid
+from contextlib import contextmanager
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -225,14 +231,29 @@ class DaskBatch:
         self.cluster = None
         self._store_name = f"has-control-configs-{uuid.uuid4().hex[:16]}"     # this batch's, on a shared cluster
         self._tokens: dict[Config, str] | None = None     # the registered store's Configs
+        self._signals = _Signals()
+        self._output = None
         try:
+            self._signals.install()
             self._start()
+            self._signals.check()
             self._warm(check_bits)
+            self._signals.check()
         except BaseException:
             self.close()
             raise
 
     def _start(self) -> None:
+        if not self.spec.startswith("local:"):
+            return self._connect()
+        # the workers' standard error passes through this process (_WorkerOutput): a Ctrl-C at the terminal
+        # reaches the whole process group, so a worker half-way through its imports prints a traceback of
+        # its own; after a signal their output is dropped, otherwise passed on
+        self._output = _WorkerOutput(self._signals)
+        with self._output.inherited():
+            self._connect()
+
+    def _connect(self) -> None:
         try:
             from distributed import Client, LocalCluster
 
@@ -241,8 +262,17 @@ class DaskBatch:
             raise ClusterError(f"dask spec {self.spec}: needs dask and distributed "
                                f"(pip install 'has_control[dask]'): {exc}") from None
         if self.spec.startswith("local:"):
+            # the scheduler's HTTP server (always started) on a free port, never Dask's 8787: another program
+            # holding that port would cost a three-line warning; the resource tracker's notice of the workers'
+            # semaphores at exit (printed by its own process after a Ctrl-C) is not this command's to show
+            if "ignore:resource_tracker:UserWarning" not in sys.warnoptions:
+                sys.warnoptions.append("ignore:resource_tracker:UserWarning")
+            http = {"dashboard": False, "dashboard_address": "127.0.0.1:0"}
             self.cluster = LocalCluster(n_workers=self.min_workers, threads_per_worker=1, processes=True,
-                                        host="127.0.0.1", dashboard_address=None,
+                                        host="127.0.0.1", dashboard_address=None, scheduler_kwargs=http,
+                                        # the workers' warnings (a task cancelled by a Ctrl-C's close) stay in
+                                        # them; their errors still show
+                                        silence_logs=logging.ERROR,
                                         preload=[dask_worker.__name__])      # its dask_setup: Ctrl-C is ours
             self.client = Client(self.cluster, set_as_default=False)
         else:
@@ -275,6 +305,7 @@ class DaskBatch:
         futures = [self.client.submit(warm_worker, PROBE_GAINS, cfg, workers=[w], allow_other_workers=False,
                                       pure=False) for w in workers]
         expected = evaluate_configs(PROBE_GAINS, [cfg], workers=1)[:, 0] if check_bits else None
+        self._signals.check()                  # a Ctrl-C noted while the kernels loaded
         for worker, future in zip(workers, futures):
             try:
                 scores, info = future.result(timeout=self.worker_timeout + 120.0)
@@ -329,6 +360,7 @@ class DaskBatch:
             tokens = self._stored(cfgs)
             futures = self.client.map(evaluate_chunk, [k[lo:hi] for _, lo, hi in tasks],
                                       [self._store_name] * len(tasks), [tokens[s] for s, _, _ in tasks], pure=True)
+            self._wait(futures)
             parts = self.client.gather(futures)
         except KilledWorker as exc:
             raise ClusterError(f"dask spec {self.spec}: {exc.allowed_failures + 1} workers died running task "
@@ -344,6 +376,20 @@ class DaskBatch:
             out[lo:hi, s] = part
         return out
 
+    def _wait(self, futures) -> None:
+        """Until ``futures`` are done (or one failed: gather says which), a signal seen
+        within 0.1 s even if its KeyboardInterrupt was swallowed (raised inside a gc
+        callback of distributed's, it is only "ignored" and the work would run to its end)."""
+        pending = list(futures)
+        while pending:
+            self._signals.check()
+            pending = [f for f in pending if not f.done()]
+            if any(f.status == "error" for f in futures if f.done()):
+                break
+            if pending:
+                time.sleep(0.1)
+        self._signals.check()
+
     def __exit__(self, kind, *exc) -> None:
         if kind is not None and issubclass(kind, KeyboardInterrupt):
             _quiet()
@@ -353,6 +399,7 @@ class DaskBatch:
         """Remove the Config store, disconnect, and stop ``local:N``'s processes."""
         client, cluster, stored = self.client, self.cluster, self._tokens
         self.client = self.cluster = self._tokens = None
+        self._signals.restore()
         try:
             if client is not None and stored is not None and cluster is None:
                 client.unregister_worker_plugin(self._store_name)  # a shared scheduler keeps plugins
@@ -366,6 +413,98 @@ class DaskBatch:
 
     def __enter__(self) -> "DaskBatch":
         return self
+
+
+class _Signals:
+    """While a batch is open: Ctrl-C and SIGTERM are noted as well as raised
+    (KeyboardInterrupt), so that :meth:`check` raises again where one raised
+    inside a callback of distributed's was swallowed. Main thread only; the
+    previous handlers are back at :meth:`restore`."""
+
+    def __init__(self):
+        self.seen: list[int] = []
+        self._previous: dict = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous = signal.getsignal(sig)
+            if previous in (signal.SIG_IGN, None):
+                continue
+            self._previous[sig] = previous
+            signal.signal(sig, self._note)
+
+    def _note(self, signum, frame) -> None:
+        self.seen.append(signum)
+        if not _in_callback(frame):
+            raise KeyboardInterrupt                # else at the next check(), outside the callback
+
+    def check(self) -> None:
+        if self.seen:
+            raise KeyboardInterrupt
+
+    def restore(self) -> None:
+        if threading.current_thread() is threading.main_thread():
+            for sig, handler in self._previous.items():
+                signal.signal(sig, handler)
+        self._previous.clear()
+
+
+#: Code that calls Python back from C or from the collector, where a KeyboardInterrupt would only be
+#: "ignored" with a traceback (numba's compile cache via llvmlite's ctypes callback, distributed's gc hook).
+_CALLBACK_SITES = ("/llvmlite/", "/numba/", "/distributed/gc.py", "/ctypes/")
+
+
+def _in_callback(frame) -> bool:
+    while frame is not None:
+        if any(site in frame.f_code.co_filename for site in _CALLBACK_SITES):
+            return True
+        frame = frame.f_back
+    return False
+
+
+class _WorkerOutput:
+    """File descriptor 2 of the processes a ``local:N`` cluster starts: a pipe
+    whose lines this process passes on to its own standard error, each after
+    :data:`HOLD` s, unless a signal came meanwhile (then nothing more)."""
+
+    HOLD = 0.3                                   # [s] a worker's traceback comes within this of the signal
+
+    def __init__(self, signals: "_Signals"):
+        self.signals = signals
+        self._read, self._write = os.pipe()
+        self._out = os.dup(2)
+        threading.Thread(target=self._pass_on, name="has-control-worker-stderr", daemon=True).start()
+
+    @contextmanager
+    def inherited(self):
+        """While the block runs, this process's fd 2 is the pipe (what it starts inherits it)."""
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(self._write, 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            os.close(self._write)                # the workers hold theirs: EOF when the last one ends
+
+    def _pass_on(self) -> None:
+        with os.fdopen(self._read, "rb", buffering=0) as pipe:
+            while True:
+                data = pipe.read(65536)
+                if not data:
+                    break
+                time.sleep(self.HOLD)
+                if self.signals.seen:
+                    continue                     # an interrupted command ends in one line: drain, drop
+                try:
+                    os.write(self._out, data)
+                except OSError:
+                    pass
+        os.close(self._out)
 
 
 def _quiet() -> None:

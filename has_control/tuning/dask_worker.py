@@ -70,7 +70,6 @@ def warm_worker(gains: np.ndarray, cfg: Config) -> tuple[np.ndarray, dict]:
 
     import numba
 
-    import has_control
     scores = np.ascontiguousarray(evaluate_configs(gains, [cfg], workers=worker_threads())[:, 0])
     return scores, {"pid": os.getpid(), "python": sys.version.split()[0], "numba": numba.__version__,
-                    "numpy": np.__version__, "has_control": os.path.dirname(has_control.__file__)}
+                    "numpy": np.__version__, "has_control": os.path.dirname(os.path.dirname(os.path.abspath(__file__)))}

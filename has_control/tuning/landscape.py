@@ -16,11 +16,32 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from has_control.common.errors import HasControlError
 from has_control.common.json_numbers import list_to_json
 from has_control.config import GAIN_MAX
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 NAMES = ("k1", "k2", "k3")
+#: The most episodes one landscape may plan (slices x points² x scenarios): 3 x 300² nominal, about
+#: 20 min on one core; checked before any grid is allocated.
+MAX_EPISODES = 270_000
+
+
+def planned_episodes(points: int, scenarios: int = 0, pairs: int = len(PAIRS)) -> int:
+    """The episodes a landscape plans: ``pairs`` slices of ``points``² gain sets, each
+    scored on every one of ``scenarios`` (0: the nominal model, one episode)."""
+    return pairs * points * points * max(1, scenarios)
+
+
+def check_plan(points: int, scenarios: int = 0, pairs: int = len(PAIRS)) -> int:
+    """:func:`planned_episodes` if at most :data:`MAX_EPISODES`, else an error
+    naming the product and the limit (before any allocation)."""
+    n = planned_episodes(points, scenarios, pairs)
+    if n > MAX_EPISODES:
+        over = f" x {scenarios:,} scenarios" if scenarios else ""
+        raise HasControlError(f"--points {points}: {pairs} slices x {points}² points{over} = {n:,} episodes, "
+                              f"above the limit of {MAX_EPISODES:,} per landscape: fewer points or scenarios")
+    return n
 
 
 @dataclass(frozen=True)
@@ -75,10 +96,13 @@ class Slice:
 
 def slices(objective: Callable[[np.ndarray], np.ndarray], point: Sequence[float], lower: Sequence[float],
            upper: Sequence[float], points: int = 40, beyond: float = 0.25,
-           pairs: Sequence[tuple[int, int]] = PAIRS) -> list[Slice]:
+           pairs: Sequence[tuple[int, int]] = PAIRS, scenarios: int = 0) -> list[Slice]:
     """J on a ``points`` x ``points`` grid per pair of gains through ``point``,
     from ``lower`` to ``upper`` + ``beyond`` x range (at most 1e6 1/s); one
-    batch call of ``objective`` ((P, 3) gains -> P costs) for all of them."""
+    batch call of ``objective`` ((P, 3) gains -> P costs) for all of them.
+    ``scenarios``: how many episodes the objective runs per gain set, for the
+    bound :func:`check_plan` (checked here, before the grids exist)."""
+    check_plan(points, scenarios, len(pairs))
     p = np.asarray(point, dtype=np.float64)
     lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
     top = np.minimum(hi + beyond * (hi - lo), GAIN_MAX)
@@ -108,4 +132,4 @@ def _axis(lo: float, hi: float, top: float, points: int) -> np.ndarray:
     return np.minimum(x, GAIN_MAX)
 
 
-__all__ = ["Slice", "slices", "PAIRS"]
+__all__ = ["Slice", "slices", "PAIRS", "MAX_EPISODES", "check_plan", "planned_episodes"]

@@ -56,18 +56,22 @@ def restore(state: dict):
 
 
 def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, method: str = DEFAULT,
-             seed: int | None = None, callback=None, **options) -> OptimiseResult:
+             seed: int | None = None, callback=None, optimiser=None, **options) -> OptimiseResult:
     """Minimise ``objective`` ((P, M) candidates -> P costs) over ``bounds =
     (lower, upper)`` with ``method``; ``options`` are the method's settings
-    (:class:`RestartSettings` or :class:`SwarmSettings` fields)."""
-    try:
-        if is_swarm(check_method(method)):
-            opt = new_optimiser(method, bounds, swarm=SwarmSettings(**options), seed=seed)
-        else:
-            opt = new_optimiser(method, bounds, restarts=RestartSettings(**options), seed=seed)
-    except TypeError as exc:
-        raise SwarmError(f"minimize: {exc}") from None
-    return drive(opt, objective, callback)
+    (:class:`RestartSettings` or :class:`SwarmSettings` fields, e.g.
+    ``particles``, ``iterations``, ``evaluations``). ``callback(optimiser)``
+    runs after each batch; returning True stops. ``optimiser`` continues a
+    restored one (:func:`restore`; its own settings and bounds then apply)."""
+    if optimiser is None:
+        try:
+            if is_swarm(check_method(method)):
+                optimiser = new_optimiser(method, bounds, swarm=SwarmSettings(**options), seed=seed)
+            else:
+                optimiser = new_optimiser(method, bounds, restarts=RestartSettings(**options), seed=seed)
+        except TypeError as exc:
+            raise SwarmError(f"minimize: {exc}") from None
+    return drive(optimiser, objective, callback)
 
 
 __all__ = ["METHODS", "DEFAULT", "new_optimiser", "restore", "drive", "minimize", "is_swarm", "check_method"]

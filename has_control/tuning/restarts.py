@@ -31,13 +31,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import TYPE_CHECKING, Callable, Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 
 from has_control.common.errors import shown
 from has_control.tuning.optimiser import (
-    BestSoFar, IterationRecord, SwarmError, SwarmResult, check_bounds as _check_bounds, drive, record_dict, record_from,
+    BestSoFar, IterationRecord, SwarmError, SwarmResult, check_bounds as _check_bounds, record_dict, record_from,
 )
 
 if TYPE_CHECKING:                    # pycma is imported where a search starts (see _search)
@@ -286,19 +286,4 @@ def _distinct(found: list[tuple[float, np.ndarray]], count: int, radius: float =
     return out
 
 
-def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, seed: int | None = None,
-             callback: Callable[[Restarts], bool | None] | None = None, run: Restarts | None = None,
-             **options) -> SwarmResult:
-    """Minimise ``objective`` (a batch of (P, M) candidates -> P costs) over the
-    box ``bounds = (lower, upper)`` with ``cma-restarts``. ``options`` are
-    :class:`RestartSettings` fields; ``callback(run)`` after each batch, True stops;
-    ``run`` continues a restored one."""
-    if run is None:
-        try:
-            run = Restarts(bounds, RestartSettings(**options), seed)
-        except TypeError as exc:
-            raise SwarmError(f"minimize: {exc}") from None
-    return drive(run, objective, callback)
-
-
-__all__ = ["Restarts", "RestartSettings", "METHOD", "minimize"]
+__all__ = ["Restarts", "RestartSettings", "METHOD"]

@@ -50,6 +50,7 @@ from has_control.tuning.tuner import TuneResult, Tuning, tune, tuning_from_json,
 
 SESSION = "session"
 SETTINGS, ITERATION, SWARM, RESULT = "/tuner/settings", "/tuner/iteration", "/tuner/swarm", "/tuner/result"
+LANES = "/tuner/lanes"              # the tuner node's lanes' parameters as read back before the validation
 VALIDATION = "/validation"
 TUNING_KEY = "has_control/tuning"
 LOCK = ".lock"                      # DIR/.lock: flock'ed by the one process writing the session
@@ -101,8 +102,7 @@ class Session:
 
     def _clear(self, replace: bool) -> None:
         """Refuse an existing session or result here, or (``replace``) remove them."""
-        old = [p for p in (self.path, self.directory / RESULT_FILE, self.directory / (SESSION + ".interrupted"))
-               if p.exists()]
+        old = existing(self.directory)
         if old and not replace:
             self.lock.release()
             raise HasControlError(f"{old[0]}: exists already; --force to overwrite")
@@ -129,6 +129,59 @@ class Session:
 
     def close(self) -> Path:
         return self.writer.close()
+
+
+def existing(directory: str | Path) -> list[Path]:
+    """What a new session in ``directory`` would replace: its session bag, result, interrupted bag."""
+    d = Path(directory)
+    return [p for p in (d / SESSION, d / RESULT_FILE, d / (SESSION + ".interrupted")) if p.exists()]
+
+
+def conflict(record: str | Path | None, resume_dir: str | Path | None, force: bool = False) -> str | None:
+    """Why a session recorded in ``record`` (or resuming ``resume_dir``) cannot start, known
+    before it runs (a front end answers it at once): a session already there without
+    ``force``, another process writing it, nothing to resume; None when it can."""
+    if resume_dir:
+        d = Path(resume_dir)
+        if not (d / SESSION).exists() and not (d / (SESSION + ".interrupted")).exists():
+            return f"{d / SESSION}: no session bag to resume"
+        if (d / RESULT_FILE).exists():
+            return f"{d / SESSION}: the session has finished already (see {d / RESULT_FILE})"
+        return _locked(d)
+    if not record:
+        return None
+    d = Path(record)
+    if d.exists() and not d.is_dir():
+        return f"{d}: not a directory"
+    old = existing(d) if d.is_dir() else []
+    if old and not force:
+        return f"{old[0]}: exists already; force:=true (--force) to overwrite"
+    return _locked(d) if d.is_dir() else None
+
+
+def _locked(d: Path) -> str | None:
+    """Why ``d``'s session lock cannot be taken now (another process writes the session), or None."""
+    try:
+        DirectoryLock(d, LOCK, "the tuning session").release()
+    except HasControlError as exc:
+        return str(exc)
+    return None
+
+
+def write_lanes(writer, lanes: list[dict]) -> None:
+    """The lanes' parameters as read back (one JSON message ``{"lanes": [{"lane", "controller",
+    "plant"}]}`` on ``/tuner/lanes``) into an open session bag."""
+    writer.add_topic(LANES, STRING, QosSpec(depth=10))
+    writer.write(LANES, time.time_ns(), _string(json.dumps({"lanes": lanes}, default=_plain_json)))
+
+
+def _plain_json(value):
+    return value.tolist() if hasattr(value, "tolist") else str(value)
+
+
+def rewrite_result(directory: str | Path, out: dict) -> None:
+    """``tune.json`` again with ``out`` (a front end's keys added after the session, e.g. its validation)."""
+    write_atomic(Path(directory) / RESULT_FILE, json.dumps(out, indent=1) + "\n")
 
 
 @dataclasses.dataclass
@@ -317,7 +370,7 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
     recording every iteration after ``on_iteration(swarm)`` (an observer), and finishes the session: the
     result and the validation run of the best gains under ``/validation``
     (``record_validation(gains, writer, cfg)`` records it, e.g. through the
-    node graph; default: the in-process trace), ``artefacts(result, directory)``
+    node graph; it returns False, or none is given: the in-process trace), ``artefacts(result, directory)``
     (figures), ``gains.yaml`` (a ``--params-file``) and, last, ``tune.json``
     (written then renamed: its presence says the session finished).
     ``announce(message)`` hears what a resume found. ``batch(gains, cfgs)`` has
@@ -354,8 +407,8 @@ def run_session(cfg, tuning: Tuning, directory: str | Path | None = None, *, res
         bag = None
         if session is not None:
             d = session.directory
-            if record_validation is not None:
-                record_validation(res.gains, session.writer, cfg)
+            recorded = record_validation is not None and record_validation(res.gains, session.writer, cfg) is not False
+            if recorded:
                 bag = session.finish(out)
             else:
                 bag = session.finish(out, simulate(cfg, res.gains), cfg)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -253,25 +252,4 @@ def crazy_probability(w: float, s: SwarmSettings) -> float:
     return s.inertia_min * math.exp(w - s.inertia_max)
 
 
-def minimize(objective: Callable[[np.ndarray], np.ndarray], bounds, variant: str = "pso-cp-tvac",
-             n_particles: int = 80, max_iter: int = 100, seed: int | None = None,
-             callback: Callable[[Swarm], bool | None] | None = None, swarm: Swarm | None = None,
-             **options) -> SwarmResult:
-    """Minimise ``objective`` over the box ``bounds = (lower, upper)``.
-
-    objective takes the (N, M) swarm and returns N costs. ``options`` are
-    further :class:`SwarmSettings` fields. ``callback(swarm)`` runs after each
-    iteration; returning True stops early. Pass ``swarm`` to continue a
-    restored one (its own settings then apply).
-    """
-    if swarm is None:
-        try:
-            settings = SwarmSettings(variant=variant, particles=n_particles, iterations=max_iter,
-                                     **options)
-        except TypeError as exc:
-            raise SwarmError(f"minimize: {exc}") from None
-        swarm = Swarm(bounds, settings, seed)
-    return drive(swarm, objective, callback)
-
-
-__all__ = ["Swarm", "SwarmSettings", "SwarmResult", "SwarmError", "minimize", "VARIANTS", "Variant"]
+__all__ = ["Swarm", "SwarmSettings", "SwarmResult", "SwarmError", "VARIANTS", "Variant"]

@@ -30,6 +30,7 @@ from has_control.tuning.requirements import Requirements, report_lines, requirem
 from has_control.tuning.restarts import RestartSettings
 from has_control.tuning.vouch import unseen_variants, vouch_line, vouch_report, vouched_cost
 from has_control.tuning.optimiser import OptimiseResult, SwarmError
+from has_control.tuning.parameters import TUNING_TABLE
 from has_control.tuning.swarm import Swarm, SwarmSettings
 from has_control.common.json_numbers import to_json
 
@@ -85,10 +86,10 @@ class Tuning:
         return t
 
 
-_INT_KEYS = {"particles", "iterations", "seed", "evaluations", "population", "side_by_side", "window",
-             "polish", "polish_starts"}
-_STR_KEYS = {"variant", "crazy_redraw", "crazy_probability", "scale"}
-_LIST_KEYS = {"lower", "upper"}
+# each key's type: the tuning settings' table (tuning.parameters), by name without its prefix
+_INT_KEYS = {k.split(".", 1)[1] for k, p in TUNING_TABLE.items() if p.type == "int"}
+_STR_KEYS = {k.split(".", 1)[1] for k, p in TUNING_TABLE.items() if p.type == "str"}
+_LIST_KEYS = {k.split(".", 1)[1] for k, p in TUNING_TABLE.items() if p.type == "double[]"}
 _RESTART_FIELDS = {f.name for f in dataclasses.fields(RestartSettings)}
 PREFIXES = ("swarm.", "restarts.")       # the keys of config/tuner.yaml
 

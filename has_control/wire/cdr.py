@@ -65,7 +65,9 @@ class JointStateLayout:
     size: int
 
 
-def joint_state_layout(data: bytes) -> JointStateLayout:
+def parse_joint_state_layout(data: bytes) -> JointStateLayout:
+    """The layout of one serialized JointState (its names and where its three
+    arrays lie); ``codec.joint_state_layout`` builds the layout we write."""
     c = _Cursor(data)
     c.pos += 8                       # header.stamp: int32 sec, uint32 nanosec
     c.string()                       # header.frame_id
@@ -112,7 +114,7 @@ def stamps_ns(datas: list[bytes]) -> np.ndarray:
 
 def joint_states(datas: list[bytes], what: str = "JointState") -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray]:
     """(names, position, velocity, effort), each array (n, joints)."""
-    lay = joint_state_layout(datas[0])
+    lay = parse_joint_state_layout(datas[0])
     raw = _uniform(datas, lay.position[0], what)
     return (lay.names, _column(raw, *lay.position), _column(raw, *lay.velocity),
             _column(raw, *lay.effort))
