@@ -108,7 +108,7 @@ def bags(tmp_path_factory):
     w.close()
     bag = read_bag(d / "clean")
     msgs = {t: list(m) for t, m in bag.messages.items()}
-    lay = cdr.joint_state_layout(msgs["/state"][0][1])
+    lay = cdr.parse_joint_state_layout(msgs["/state"][0][1])
 
     def damaged(name, change):
         m = {t: list(v) for t, v in msgs.items()}

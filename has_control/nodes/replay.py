@@ -203,7 +203,7 @@ def _check_joint_states(path, topic: str, messages: list) -> None:
     (a damaged recording is bad input, exit 2, never a count of mismatches)."""
     datas = [d for _, d in messages]
     try:
-        cdr.joint_state_layout(datas[0])
+        cdr.parse_joint_state_layout(datas[0])
     except (cdr.CdrError, struct.error, IndexError, UnicodeDecodeError) as exc:
         raise BagError(f"{path}: {topic}: message 0: not a readable JointState ({exc})") from None
     size = len(datas[0])
