@@ -18,9 +18,8 @@ from has_control.loop.controller import ControllerProcess
 from has_control.loop.guards import Conflicts
 from has_control.loop.log import ListLog
 from has_control.loop.ports import Outputs, make_port
-from has_control.wire import steps
 from has_control.wire.joint_mapping import DEFAULT_STATE_INTERFACES, parse_state_interfaces
-from has_control.wire.topics import CLOCK_LAYOUT, STATE_LAYOUT
+from test_loop import _encoded_states
 
 SAFE = (150.0, 158.0, 162.0)
 LIMIT_CYCLING = (264.0, 264.0, 263.0)       # tuned on a first-order valve: limit-cycles on a 100 Hz spool
@@ -53,15 +52,6 @@ def test_the_message_driven_deployer_trips_and_falls_back_where_the_in_process_k
     assert tuple(plan.schedule()[d.final_row()]) == pytest.approx(run.final_gains)
 
 
-def _states(cfg, rows):
-    ap = cfg.plant.as_array(cfg.actuator)
-    state, clock, scr = STATE_LAYOUT.buffer(), CLOCK_LAYOUT.buffer(), steps.scratch()
-    for i, row in enumerate(rows):
-        x = np.array([row[Col.y], row[Col.ydot], row[Col.P1], row[Col.P2], 0.0])
-        steps.encode_state(x, ap, i, cfg.episode.step_ns, state, clock, scr)
-        yield bytes(state), x
-
-
 @pytest.mark.parametrize("layout", ["has_control", "ros2_control"])
 def test_each_layouts_command_and_internals_pair_into_the_samples_the_controller_ran(layout):
     """Through the controller's own ports: what the deployment reads off either
@@ -75,7 +65,7 @@ def test_each_layouts_command_and_internals_pair_into_the_samples_the_controller
                      mapping=parse_state_interfaces(DEFAULT_STATE_INTERFACES), command_topic="/valve/commands")
     watched = Watched(layout, command_topic="/valve/commands")
     assert watched.command[0] == ("/valve/commands" if layout == "ros2_control" else "/command")
-    for data, x in _states(cfg, ref.data[:20]):
+    for data, x in _encoded_states(cfg, ref.data[:20]):
         port.on_state(data if layout == "has_control" else SimpleNamespace(
             name=["actuator", "chamber_1", "chamber_2"], position=[x[0], 0.0, 0.0], velocity=[x[1], 0.0, 0.0],
             effort=[0.0, x[2], x[3]]))

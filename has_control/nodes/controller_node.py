@@ -72,30 +72,23 @@ from has_control.common.errors import ConfigError
 from has_control.config.table import Param, refusal, table
 from has_control.loop.controller import ControllerProcess
 from has_control.loop.guards import Conflicts
-from has_control.loop.ports import INTERFACES, Outputs, make_port
+from has_control.loop.ports import Outputs, make_port
 from has_control.wire import steps
 from has_control.wire.topics import CONTROLLER_STATE, GAINS, REFERENCE
-from has_control.wire.joint_mapping import (DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC,
-                                            DEFAULT_STATE_INTERFACES, parse_state_interfaces)
+from has_control.wire.joint_mapping import DEFAULT_STATE_INTERFACES, parse_state_interfaces
 from has_control.nodes.live_tap import node_tap
 from has_control.nodes.managed import AUTOSTART, autostart as bring_up_now, refuse, state_label
 from has_control.nodes.runtime import (CONTROL_OFFERED_QOS, CONTROL_QOS, node_main, publish_diagnostics, qos,
                                        raw_publish, spin,
                                        trigger_service)
-from has_control.nodes.parameters import check_changes, config_from_node, declare_config, declare_table
+from has_control.nodes.parameters import (check_changes, config_from_node, declare_config, declare_table,
+                                          interface_parameters)
 
 PREFIXES = ("actuator.", "simulation.", "gains.", "adaptation.", "reference.", "noise.")
 #: The controller's own parameters (its table; the law's are :data:`~has_control.config.schema.CONFIG_TABLE`'s).
 OWN_PARAMETERS = table((
     Param("publish_internals", "bool", True, text="publish ~/controller_state and ~/reference every sample"),
-    Param("interface", "str", "has_control", text="has_control (the plant's state/command JointStates) | "
-          "ros2_control (JointState from joint_states_topic, Float64MultiArray [u] on command_topic)",
-          choices=INTERFACES, read_only=True),
-    Param("joint_states_topic", "str", DEFAULT_JOINT_STATES_TOPIC,
-          text="ros2_control: the sensor_msgs/JointState topic read", read_only=True),
-    Param("command_topic", "str", DEFAULT_COMMAND_TOPIC,
-          text="ros2_control: the std_msgs/Float64MultiArray topic the valve command u [m] is written to",
-          read_only=True),
+    *interface_parameters("controller"),
     Param("state_interfaces", "str[]", list(DEFAULT_STATE_INTERFACES), length=4, read_only=True,
           text="ros2_control: joint/interface of y [m], y_dot [m/s], P1 [Pa], P2 [Pa] "
           "(interface: position, velocity or effort)"),

@@ -22,8 +22,30 @@ from rclpy.parameter import Parameter
 from has_control.common.errors import ConfigError
 from has_control.config import CONFIG_TABLE, Param, build_config, config_parameters, load_config, refusal
 from has_control.core.params import PLANT_OVERRIDES, Config
+from has_control.loop.ports import INTERFACES
+from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC
 
 _INT64_MAX = 2 ** 63 - 1
+
+
+def interface_parameters(side: str) -> tuple[Param, ...]:
+    """The ``interface``, ``joint_states_topic`` and ``command_topic`` rows of
+    the node on ``side`` of a ros2_control loop: the ``controller`` reads the
+    JointState and writes the command, the ``plant`` (a hardware driver's
+    place) writes the JointState and reads the command."""
+    reads = side == "controller"
+    layouts = ("has_control (the plant's state/command JointStates) | ros2_control (JointState from "
+               "joint_states_topic, Float64MultiArray [u] on command_topic)" if reads else
+               "has_control (state/command JointStates) | ros2_control (JointState on joint_states_topic, "
+               "Float64MultiArray [u] from command_topic, as a hardware driver)")
+    return (
+        Param("interface", "str", "has_control", text=layouts, choices=INTERFACES, read_only=True),
+        Param("joint_states_topic", "str", DEFAULT_JOINT_STATES_TOPIC, read_only=True,
+              text=f"ros2_control: the sensor_msgs/JointState topic {'read' if reads else 'written'}"),
+        Param("command_topic", "str", DEFAULT_COMMAND_TOPIC, read_only=True,
+              text="ros2_control: the std_msgs/Float64MultiArray topic the valve command u [m] is written to"
+              if reads else "ros2_control: the std_msgs/Float64MultiArray [u] topic read"),
+    )
 
 
 def descriptor(p: Param, read_only: bool | None = None) -> ParameterDescriptor:

@@ -93,10 +93,8 @@ from std_msgs.msg import Float64MultiArray
 from has_control.common.errors import ConfigError
 from has_control.config.table import Param, refusal, table
 from has_control.loop.plant import PlantProcess
-from has_control.loop.ports import INTERFACES
 from has_control.loop.schedule import MODES, LoopStats, paced_summary, run_loop, schedule_of
 from has_control.wire import steps
-from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC
 from has_control.wire.topics import CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, TRUE_STATE
 from has_control.nodes.live_tap import node_tap
 from has_control.nodes.managed import AUTOSTART, autostart, refuse, state_label
@@ -104,7 +102,7 @@ from has_control.nodes.runtime import (CONTROL_OFFERED_QOS, CONTROL_QOS, node_ma
                                        publish_diagnostics, qos, raw_publish,
                                        trigger_service)
 from has_control.nodes.parameters import (check_changes, config_from_node, declare_config, declare_plant_overrides,
-                                          declare_table)
+                                          declare_table, interface_parameters)
 
 PREFIXES = ("actuator.", "simulation.", "plant.", "noise.")
 #: The plant's own parameters (its table; the model's are :data:`~has_control.config.schema.CONFIG_TABLE`'s).
@@ -123,13 +121,7 @@ OWN_PARAMETERS = table((
     AUTOSTART,
     Param("keep_alive", "bool", False, text="a served plant: episodes only on ~/start, kept serving after each",
           read_only=True),
-    Param("interface", "str", "has_control", text="has_control (state/command JointStates) | ros2_control "
-          "(JointState on joint_states_topic, Float64MultiArray [u] from command_topic, as a hardware driver)",
-          choices=INTERFACES, read_only=True),
-    Param("joint_states_topic", "str", DEFAULT_JOINT_STATES_TOPIC,
-          text="ros2_control: the sensor_msgs/JointState topic written", read_only=True),
-    Param("command_topic", "str", DEFAULT_COMMAND_TOPIC,
-          text="ros2_control: the std_msgs/Float64MultiArray [u] topic read", read_only=True),
+    *interface_parameters("plant"),
     Param("drop_states", "int", 0, "samples", "test hook: the state of every Nth sample is not published "
           "(0: none; else >= 2)", lower=0, check_more=lambda n: "must be 0 (none) or >= 2" if n == 1 else None),
 ))
