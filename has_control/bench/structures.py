@@ -13,7 +13,8 @@ the truth.
 
 For each: the chosen structure, each estimate against the truth (inside its 95 %
 interval; ω_n and ζ within 5 %), the verdict, the wall time; for the spool
-machines also the verdict from the old experiment alone. A study, not a test.
+machines also the verdict from the old experiment alone (and whether it called an
+estimate "identified" whose interval misses the truth). A study, not a test.
 
 ``python -m has_control.bench.structures [--plants 20] [--kinds in-class spool outside] [--json FILE]``
 """
@@ -84,9 +85,19 @@ def study(kind: str, i: int, truth: dict) -> dict:
     if kind == "spool":
         t1 = time.perf_counter()
         alone = select_structure([old])
+        ares = alone.chosen.result
+        est = {k: {"value": e.value, "ci95": [e.lower, e.upper], "status": e.status, "truth": truth.get(k, 0.0),
+                   "covered": bool(e.lower <= truth.get(k, 0.0) <= e.upper) if math.isfinite(e.lower) else None}
+               for k, e in ares.estimates.items()}
         row["old_alone"] = {"seconds": time.perf_counter() - t1, "chosen": alone.chosen.structure.name,
-                            "line": alone.chosen.result.verdict.line(),
-                            "valve_determined": alone.chosen.result.verdict.valve_determined}
+                            "line": ares.verdict.line(), "adequate": ares.verdict.adequate,
+                            "valve_determined": ares.verdict.valve_determined,
+                            "band_hz": ares.verdict.band_hz, "broadband_hz": ares.verdict.broadband_hz,
+                            "estimates": est,
+                            # the clause "never 'adequate' with tight intervals that miss"
+                            "identified_and_missed": sorted(k for k, e in est.items()
+                                                            if e["status"] == "identified" and
+                                                            e["covered"] is False)}
     return row
 
 
@@ -123,6 +134,11 @@ def summary(rows: list[dict]) -> dict:
                 s[f"{k}_max_relative_error"] = max(errs, default=None)
             s["old_alone_valve_not_determined"] = sum(not r["old_alone"]["valve_determined"] for r in rs)
             s["old_alone_seconds_max"] = max(r["old_alone"]["seconds"] for r in rs)
+            s["old_alone_adequate_with_an_identified_interval_missing"] = sum(
+                bool(r["old_alone"]["adequate"] and r["old_alone"]["identified_and_missed"]) for r in rs)
+            s["old_alone_spool_identified"] = sum(
+                any(r["old_alone"]["estimates"].get(k, {}).get("status") == "identified"
+                    for k in ("valve_frequency", "valve_damping_ratio")) for r in rs)
         out[kind] = s
     return out
 
@@ -143,7 +159,8 @@ def main(argv=None) -> int:
             est = " ".join(f"{k[:8]}{'+' if e['covered'] else '-' if e['covered'] is False else '?'}"
                            f"{(e['relative_error'] or 0) * 100:+.2f}" for k, e in row["estimates"].items())
             extra = f"  old alone: {row['old_alone']['chosen']}, valve determined " \
-                    f"{row['old_alone']['valve_determined']}" if "old_alone" in row else ""
+                    f"{row['old_alone']['valve_determined']}, identified and missed " \
+                    f"{row['old_alone']['identified_and_missed']}" if "old_alone" in row else ""
             print(f"{kind} {i:2d}: {row['seconds']:.1f} s  {row['chosen']:<28} "
                   f"{'ok ' if _ok(kind, row) else 'NO '} {row['verdict']['line'][:60]}  {est}{extra}", flush=True)
     report(rows, summary(rows), args.json)

@@ -367,17 +367,27 @@ def valve_corner_hz(values: dict[str, float]) -> float:
     return 1.0 / (2.0 * math.pi * tau) if tau > 0.0 else math.inf
 
 
+#: The spool's own parameters, which only an excitation reaching its corner determines.
+SPOOL_KEYS = ("valve_frequency", "valve_damping_ratio")
+
+
 def apply_verdict(result: IdentificationResult, v: Verdict) -> IdentificationResult:
     """``result`` judged by ``v``: with an INADEQUATE model no estimate stays
     "identified" (its interval measures the noise, not the model's error).
     A valve whose dynamics the band does not reach keeps its τ_v (the
     low-frequency lag, which the data do determine): the verdict's line says
-    that its order is not seen."""
+    that its order is not seen; a second-order spool's ω_n and ζ are then at
+    most "poorly determined" (the low-frequency phase gives 2ζ/ω_n; a limit
+    cycle gives one gain and one phase, see :mod:`.verdict`)."""
     estimates = {}
     for k, e in result.estimates.items():
         if e.status == "identified" and not v.adequate:
             e = dataclasses.replace(e, status="poorly determined",
                                     why="the model is INADEQUATE: the interval holds for the model, not the machine")
+        elif e.status == "identified" and k in SPOOL_KEYS and not v.valve_determined:
+            e = dataclasses.replace(e, status="poorly determined",
+                                    why="the valve's dynamics are not determined by the command's broadband band: "
+                                        "the interval rests on the model's exact form")
         estimates[k] = e
     return dataclasses.replace(result, estimates=estimates, verdict=v)
 
