@@ -21,8 +21,8 @@ goes to its nearest sample when within :data:`TOLERANCE` of a step (±0.4 Δt,
 offset. On the grid: repeated identical messages for a sample are collapsed
 and counted; two different states for one sample are refused naming the
 sample; samples without a state are counted (dropped); states with
-non-finite values are counted and flagged (each consumer says what it does
-with them); a truncated or malformed CDR payload is one line naming the
+non-finite values, or values beyond :data:`IMPOSSIBLE`, are counted, read as
+NaN and flagged (each consumer says what it does with them); a truncated or malformed CDR payload is one line naming the
 message. Every finding is one line on ``bag.on_warning`` before any result.
 """
 from __future__ import annotations
@@ -48,6 +48,10 @@ TOLERANCE = 0.4
 EPOCH_NS = 86_400 * 1_000_000_000
 #: Stamps reaching this many samples beyond the message count are not one run.
 MAX_SPREAD = 100
+#: Magnitudes no sensor of this actuator reads (y [m], ẏ [m/s], P1, P2 [Pa]): a state beyond is read as
+#: not measured (NaN), counted in the non-finite states' line (a 1e300 sample must not set a fit's weights
+#: or a figure's axes).
+IMPOSSIBLE = np.array([1e2, 1e3, 1e10, 1e10])
 #: The has_control layout's command: joint ``valve``, position [m].
 VALVE = [(COMMAND_NAMES[0], 0)]
 
@@ -175,6 +179,11 @@ def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
                      f"message taken as its nearest sample (tolerance ±{TOLERANCE:g} step = "
                      f"{TOLERANCE * step * 1e6:g} µs)")
     finite = np.isfinite(x).all(axis=1)
+    impossible = finite & (np.abs(x) > IMPOSSIBLE[:x.shape[1]]).any(axis=1)
+    if impossible.any():                 # read as not measured: every consumer treats it as a bad sample
+        x = x.copy()
+        x[impossible] = math.nan
+        finite &= ~impossible
     n = int(idx.max()) + 1
     if n > MAX_SPREAD * len(idx) + 1_000_000:
         raise BagError(f"{where}: stamps up to sample {n - 1} for {len(idx)} messages: not one run")
@@ -184,7 +193,12 @@ def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
                      "(one state per sample)")
     nonfinite = int((~finite).sum())
     if nonfinite:
-        notes.append(f"{where}: {nonfinite} state{'s' * (nonfinite != 1)} with non-finite values (NaN or inf)")
+        wild = int(impossible.sum())
+        bad = np.flatnonzero(~finite)
+        notes.append(f"{where}: {nonfinite} state{'s' * (nonfinite != 1)} with non-finite values (NaN or inf"
+                     + (f"; {wild} beyond what a sensor of this actuator reads, |y| > {IMPOSSIBLE[0]:g} m, "
+                        f"|ẏ| > {IMPOSSIBLE[1]:g} m/s or |P| > {IMPOSSIBLE[2]:g} Pa" if wild else "")
+                     + f"), the first message {int(bad[0])}: read as not measured")
     first = int(np.argmax(have))
     gaps = np.flatnonzero(~have[first:])
     if len(gaps):
@@ -246,6 +260,9 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
         except _MALFORMED:
             ok = False
         if not ok:
+            if d[:2] in (b"\x00\x00", b"\x00\x02"):     # CDR_BE, PL_CDR_BE: the encapsulation header
+                raise BagError(f"{where}: message {k}: big-endian CDR (encapsulation {d[:2].hex()}): only "
+                               "little-endian CDR (0001) is read")
             raise BagError(f"{where}: message {k}: truncated or malformed CDR payload ({len(d)} bytes): "
                            f"not a {JOINT_STATE}")
         key = tuple(lay.names)

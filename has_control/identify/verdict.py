@@ -143,8 +143,8 @@ class Verdict:
 
     def _oscillation(self) -> str:
         """Why the band is not the excitation's, when a line made it."""
-        if not (self.line_share > 0.0 and self.broadband_hz < self.band_hz):
-            return ""
+        if not (self.line_share > 0.0 and not self.valve_corner_hz > VALVE_BAND_FACTOR * self.band_hz):
+            return ""                      # the line did not make the difference
         return (f", the command's {self.line_share * 100:.0f} % at {self.line_hz:.3g} Hz being one line (the loop "
                 f"oscillating, not an excitation: its broadband band stops at {self.broadband_hz:.3g} Hz)")
 
