@@ -390,3 +390,17 @@ def test_a_big_endian_message_is_one_line_naming_bag_and_byte_order(clean, tmp_p
     for cmd in ("score", "plot", "identify"):
         extra = ["--out", str(tmp_path / "b.png")] if cmd == "plot" else []
         _one_line_exit_2([cmd, str(path), *extra], capsys, "big_endian: /", "message 0: big-endian CDR")
+
+
+def test_a_bag_without_effort_is_one_line_naming_the_missing_interfaces(clean, tmp_path, capsys):
+    d, cfg, tr, x, types, msgs, custom = clean
+
+    def strip(m):
+        _, pos, vel, _ = cdr.joint_states([b for _, b in m])
+        return list(zip([lt for lt, _ in m], cdr.encode_joint_states(
+            cdr.stamps_ns([b for _, b in m]), ["actuator", "chamber_1", "chamber_2"], pos, vel, None)))
+    path = _write(tmp_path / "no_effort", types, {**msgs, "/state": strip(msgs["/state"]),
+                                                  "/true_state": strip(msgs["/true_state"])}, custom)
+    for cmd in ("score", "plot", "identify"):
+        extra = ["--out", str(tmp_path / "e.png")] if cmd == "plot" else []
+        _one_line_exit_2([cmd, str(path), *extra], capsys, "no_effort: /", "lack chamber_1/effort, chamber_2/effort")

@@ -249,7 +249,7 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
             res = resolve(names, mapping)
             if all(0 <= j < arrays[k].shape[1] for j, k in res):
                 return cdr.stamps_ns(datas), np.column_stack([arrays[k][:, j] for j, k in res])
-            _missing(names, mapping, res, 0, where, what)
+            _missing(names, mapping, res, 0, where, what, [a.shape[1] for a in arrays])
     except _MALFORMED:
         pass
     stamps, rows, cache = np.zeros(len(datas), np.int64), np.zeros((len(datas), len(mapping))), {}
@@ -271,14 +271,17 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
         arrays = [np.frombuffer(d, "<f8", n, off) for off, n in (lay.position, lay.velocity, lay.effort)]
         v = read_state(arrays, cache[key])
         if v is None:
-            _missing(lay.names, mapping, cache[key], k, where, what)
+            _missing(lay.names, mapping, cache[key], k, where, what, [len(a) for a in arrays])
         sec, nsec = struct.unpack_from("<iI", d, 4)
         stamps[k], rows[k] = sec * 1_000_000_000 + nsec, v
     return stamps, rows
 
 
-def _missing(names, mapping, res, k: int, where: str, what: str):
-    lack = [f"{joint}/{INTERFACE_KINDS[kind]}" for (joint, kind), (j, _) in zip(mapping, res) if j < 0] or \
+def _missing(names, mapping, res, k: int, where: str, what: str, lengths=None):
+    """One line: the mapped joint/interface pairs message k lacks (a joint not named, or an interface
+    array shorter than the joint's index, e.g. a JointState without effort)."""
+    lack = [f"{joint}/{INTERFACE_KINDS[kind]}" for (joint, kind), (j, c) in zip(mapping, res)
+            if j < 0 or (lengths is not None and j >= lengths[c])] or \
         [f"{joint}/{INTERFACE_KINDS[kind]}" for joint, kind in mapping]
     raise BagError(f"{where}: message {k}: joints {list(names)} lack {', '.join(lack)} of {what}: "
                    "a bag of another model (or set --state-interfaces)")
