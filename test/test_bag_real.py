@@ -404,3 +404,17 @@ def test_a_bag_without_effort_is_one_line_naming_the_missing_interfaces(clean, t
     for cmd in ("score", "plot", "identify"):
         extra = ["--out", str(tmp_path / "e.png")] if cmd == "plot" else []
         _one_line_exit_2([cmd, str(path), *extra], capsys, "no_effort: /", "lack chamber_1/effort, chamber_2/effort")
+
+
+def test_a_library_warning_is_one_line_not_a_source_echo(clean, monkeypatch, capsys):
+    # issue #31: numpy's RuntimeWarnings leaked onto stderr as two lines each (message and source line)
+    import has_control.bag.score as scoring
+    original = scoring.score_arrays
+
+    def overflowing(*args, **kwargs):
+        np.float64(1e300) * np.float64(1e300)
+        return original(*args, **kwargs)
+    monkeypatch.setattr(scoring, "score_arrays", overflowing)
+    assert main(["score", str(clean[0] / "clean")]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("has-control: warning: RuntimeWarning: overflow"), err
