@@ -418,3 +418,39 @@ def test_a_library_warning_is_one_line_not_a_source_echo(clean, monkeypatch, cap
     assert main(["score", str(clean[0] / "clean")]) == 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("has-control: warning: RuntimeWarning: overflow"), err
+
+
+def test_a_recording_longer_than_the_readers_limit_is_refused_up_front(clean, tmp_path, monkeypatch, capsys):
+    # issue #31: a 10-minute recording took 3.9 GB in identify and 3 GB in plot; the readers hold every
+    # message, so a run beyond MAX_SAMPLES is refused from metadata.yaml's counts before a message is read
+    import shutil
+
+    import has_control.bag.read as reader
+    import has_control.bag.recorded as recorded
+    from has_control.bag.recorded import MAX_SAMPLES
+    d = clean[0]
+    long = tmp_path / "long"
+    shutil.copytree(d / "clean", long)
+    meta = (long / "metadata.yaml").read_text()
+    count = len(clean[3])
+    (long / "metadata.yaml").write_text(meta.replace(f"message_count: {count}", f"message_count: {MAX_SAMPLES + 1}"))
+    monkeypatch.setattr(reader, "_McapScan", None)               # a message read would raise TypeError
+    for cmd in ("score", "plot", "identify"):
+        extra = ["--out", str(tmp_path / "l.png")] if cmd == "plot" else []
+        _one_line_exit_2([cmd, str(long), *extra], capsys, f"has {MAX_SAMPLES + 1} messages (metadata.yaml)",
+                         f"more than the {MAX_SAMPLES} samples")
+    monkeypatch.undo()
+    monkeypatch.setattr(recorded, "MAX_SAMPLES", count - 1)         # a bare .mcap: counted once read
+    _one_line_exit_2(["score", str(d / "clean" / "clean.mcap")], capsys, f"{count} messages: more than the")
+
+
+def test_validation_compares_the_whole_held_out_run_around_a_bad_sample(clean, tmp_path):
+    # issue #31: with a NaN in the held-out run, --validate compared only the part before it
+    from has_control.identify.validate import validate
+    d, cfg = clean[0], clean[1]
+    full = validate(experiment_from_bag(d / "clean", on_warning=_quiet), cfg)
+    held = experiment_from_bag(_one_state(clean, tmp_path, "nan_held", 900, 0, np.nan), on_warning=_quiet)
+    v = validate(held, cfg)
+    assert len(v.t) == len(full.t) == len(clean[3]) - held.first
+    for c, f in full.fit.items():
+        assert np.isfinite(v.fit[c]) and v.fit[c] == pytest.approx(f, abs=0.05), c

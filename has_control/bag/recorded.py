@@ -30,11 +30,14 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from has_control.bag.base import BagError
-from has_control.bag.read import Bag
+from has_control.bag.base import BagError, warn
+from has_control.bag.read import MAX_METADATA_BYTES, Bag, read_bag
+from has_control.common.errors import HasControlError
+from has_control.config import load_yaml
 from has_control.wire import cdr
 from has_control.wire.joint_mapping import (
     DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC, DEFAULT_STATE_INTERFACES, INTERFACE_KINDS,
@@ -52,6 +55,10 @@ MAX_SPREAD = 100
 #: not measured (NaN), counted in the non-finite states' line (a 1e300 sample must not set a fit's weights
 #: or a figure's axes).
 IMPOSSIBLE = np.array([1e2, 1e3, 1e10, 1e10])
+#: The most samples a reader of recorded samples takes (60 s at the reference 0.3 ms step): its
+#: memory grows with the recording (every message is held), so a longer run is refused up front,
+#: from metadata.yaml's message counts, before a message is read (docs/bags.md: the peaks measured).
+MAX_SAMPLES = 200_000
 #: The has_control layout's command: joint ``valve``, position [m].
 VALVE = [(COMMAND_NAMES[0], 0)]
 
@@ -147,6 +154,39 @@ def _named(bag: Bag, topic: str) -> str:
     return topic
 
 
+def read_run_bag(path: str | Path, on_warning=warn) -> Bag:
+    """The bag at ``path`` for ``identify``, ``score`` and ``plot``: refused
+    up front (one line naming the limit) when metadata.yaml counts more than
+    MAX_SAMPLES messages on a topic; a bare .mcap is counted once read
+    (:func:`read_recording`)."""
+    path = Path(path)
+    counts = _metadata_counts(path / "metadata.yaml") if path.is_dir() else {}
+    long = {t: c for t, c in counts.items() if c > MAX_SAMPLES}
+    if long:
+        t, c = max(long.items(), key=lambda tc: tc[1])
+        raise BagError(f"{path}: {t} has {c} messages (metadata.yaml): more than the {MAX_SAMPLES} samples "
+                       f"(60 s at 0.3 ms) identify, score and plot read, as their memory grows with the "
+                       "recording; record or split the run into shorter bags")
+    return read_bag(path, topics=None, on_warning=on_warning)
+
+
+def _metadata_counts(meta: Path) -> dict[str, int]:
+    """Messages per topic as metadata.yaml states them; {} when it does not
+    (read_bag then says what is wrong with the file)."""
+    try:
+        if not meta.is_file() or meta.stat().st_size > MAX_METADATA_BYTES:
+            return {}
+        info = load_yaml(meta.read_text(), str(meta), BagError, "malformed YAML").get("rosbag2_bagfile_information")
+        out = {}
+        for entry in info.get("topics_with_message_count") or []:
+            name, count = entry["topic_metadata"]["name"], entry["message_count"]
+            if isinstance(name, str) and isinstance(count, int):
+                out[name] = count
+        return out
+    except (HasControlError, AttributeError, KeyError, TypeError, OSError, UnicodeDecodeError):
+        return {}
+
+
 def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
                    true_state: bool = False, emit: bool = True) -> Recording:
     """The states and commands of ``bag`` on the grid of ``step`` [s] (None:
@@ -158,6 +198,9 @@ def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
     messages = bag.messages.get(st, [])
     if not messages:
         raise BagError(f"{where}: no messages")
+    if len(messages) > MAX_SAMPLES:
+        raise BagError(f"{where}: {len(messages)} messages: more than the {MAX_SAMPLES} samples (60 s at 0.3 ms) "
+                       "identify, score and plot read; record or split the run into shorter bags")
     entries = reading.state_interfaces or DEFAULT_STATE_INTERFACES
     try:
         mapping = parse_state_interfaces(entries)

@@ -11,8 +11,8 @@ import numpy as np
 from has_control.wire import cdr
 from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, TRUE_STATE
 from has_control.bag.base import PARAMETERS_KEY, BagError, warn
-from has_control.bag.read import Bag, read_bag
-from has_control.bag.recorded import Reading, has_topic, on_grid, read_recording
+from has_control.bag.read import Bag
+from has_control.bag.recorded import Reading, has_topic, on_grid, read_recording, read_run_bag
 from has_control.core.episode import EpisodeArrays
 from has_control.core.reference import reference
 from has_control.bag.samples import RunSamples
@@ -147,6 +147,6 @@ def score_bag(path: str | Path, overrides: Iterable[str | Path] = (),
               on_warning: Callable[[str], None] = warn, reading: Reading = Reading()):
     """J, e_max, e_μ, e_σ of a recorded lock-step run (SPEC §6), as the core
     scores it; warnings (truncation, missing parameters) go to ``on_warning``."""
-    bag = read_bag(path, topics=None, on_warning=on_warning)
+    bag = read_run_bag(path, on_warning=on_warning)
     run = recorded_run(bag, overrides, reading)
     return score_arrays(run["e1"], run.u, run.cfg.episode.as_array(), diverged=run.diverged), run

@@ -21,8 +21,7 @@ import numpy as np
 from numba import njit
 
 from has_control.bag.base import BagError, warn
-from has_control.bag.read import read_bag
-from has_control.bag.recorded import Reading, layout_of, read_recording
+from has_control.bag.recorded import Reading, layout_of, read_recording, read_run_bag
 from has_control.common.errors import HasControlError
 from has_control.core.jit import KERNEL
 from has_control.core.noise import measurement_noise, noise_on, sensor_readings
@@ -83,7 +82,7 @@ def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
     no segment that spans one is fitted. Raises :class:`IdentificationError`
     or BagError naming the bag and what is missing.
     """
-    bag = read_bag(path, topics=None, on_warning=on_warning)
+    bag = read_run_bag(path, on_warning=on_warning)
     cfg = bag.config(overrides)
     _, _, cm = layout_of(bag, reading)
     if cm is None or not bag.messages.get(cm):
