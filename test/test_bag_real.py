@@ -373,7 +373,8 @@ def test_score_says_what_it_scores(clean, derived, tmp_path, capsys):
     # noise.added_by: plant and no true_state: the readings are scored, said
     assert main(["score", str(derived["state_command"])]) == 0
     err = capsys.readouterr().err
-    assert "noise.added_by is plant and the bag has no '…/true_state': the sensors' readings" in err, err
+    assert "noise.added_by is plant and the bag has no '…/true_state': the states on /state are scored as " \
+        "recorded (from the node graph: the sensors' readings" in err, err
 
 
 def _one_state_bytes(message, value):

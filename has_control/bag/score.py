@@ -78,15 +78,16 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
     for line in rec.notes:
         bag.on_warning(line)
     if filled:
-        bag.on_warning(f"{bag.path}: {filled} of {n} samples without a state (dropped, or read as not measured): "
-                       f"each interpolated from its neighbours (gaps of at most {MAX_INTERPOLATED} samples) to "
-                       "score the run")
+        bag.on_warning(f"{bag.path}: {filled} of {n} samples without a state: each interpolated from its "
+                       f"neighbours (gaps of at most {MAX_INTERPOLATED} samples) to score the run (dropped, or "
+                       "read as not measured)")
     if bad_tail:
         bag.on_warning(f"{bag.path}: {rec.state_topic}: the states from t = {tail * rec.step:.6f} s to the end are "
                        "not finite: the run is scored as diverged there (J = inf)")
     if getattr(cfg.noise, "added_by", "") == "plant" and not rec.state_topic.endswith(TRUE_STATE):
-        bag.on_warning(f"{bag.path}: noise.added_by is plant and the bag has no '…/{TRUE_STATE}': the sensors' "
-                       f"readings on {rec.state_topic} are scored, not the plant's true states")
+        bag.on_warning(f"{bag.path}: noise.added_by is plant and the bag has no '…/{TRUE_STATE}': the states on "
+                       f"{rec.state_topic} are scored as recorded (from the node graph: the sensors' readings, "
+                       "not the plant's true states)")
     step = cfg.episode.step
     if has_topic(bag, REFERENCE, FLOAT64_ARRAY):
         rf = bag.find(REFERENCE, FLOAT64_ARRAY)
