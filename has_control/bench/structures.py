@@ -17,7 +17,7 @@ machines also the verdict from the old experiment alone (and whether it called a
 estimate "identified" whose interval misses the truth). A study, not a test.
 
 ``python -m has_control.bench.structures [--plants 20] [--kinds in-class spool outside] [--json FILE]
-[--only I ...] [--old-alone-only]``
+[--only I ...] [--old-alone-only | --no-old-alone]``
 """
 from __future__ import annotations
 
@@ -68,7 +68,7 @@ def _recording(truth: dict, experiment: str, seed: int) -> Experiment:
     return Experiment(e.name, e.x, e.u, known)
 
 
-def study(kind: str, i: int, truth: dict, old_alone_only: bool = False) -> dict:
+def study(kind: str, i: int, truth: dict, old_alone_only: bool = False, old_alone: bool = True) -> dict:
     old = _recording(truth, "identify.yaml", 100 * i + 1)
     row = {"kind": kind, "plant": i, "truth": truth, "estimates": {}}
     if not old_alone_only:
@@ -84,7 +84,7 @@ def study(kind: str, i: int, truth: dict, old_alone_only: bool = False) -> dict:
         rel = (e.value - t) / t if t else None
         row["estimates"][k] = {"value": e.value, "ci95": [e.lower, e.upper], "status": e.status, "truth": t,
                                "covered": covered, "relative_error": rel}
-    if kind == "spool":
+    if kind == "spool" and old_alone:
         t1 = time.perf_counter()
         alone = select_structure([old])
         ares = alone.chosen.result
@@ -137,7 +137,8 @@ def summary(rows: list[dict]) -> dict:
                 errs = [abs(r["estimates"][k]["relative_error"]) for r in rs if k in r["estimates"]]
                 s[f"{k}_within_5_percent"] = sum(e <= SPOOL_TOL for e in errs)
                 s[f"{k}_max_relative_error"] = max(errs, default=None)
-            s.update(_old_alone(rs))
+            if all("old_alone" in r for r in rs):
+                s.update(_old_alone(rs))
         out[kind] = s
     return out
 
@@ -161,6 +162,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", type=int, nargs="+", metavar="I", help="these machines of each kind, in this order")
     ap.add_argument("--old-alone-only", action="store_true",
                     help="spool machines: only the verdict from the old experiment alone")
+    ap.add_argument("--no-old-alone", action="store_true",
+                    help="spool machines: without the verdict from the old experiment alone")
     args = ap.parse_args(argv)
     rows = []
     for kind in args.kinds:
@@ -168,7 +171,7 @@ def main(argv=None) -> int:
         truths = draw(kind, count, args.seed)
         for i in (args.only if args.only is not None else range(count)):
             truth = truths[i]
-            row = study(kind, i, truth, args.old_alone_only and kind == "spool")
+            row = study(kind, i, truth, args.old_alone_only and kind == "spool", not args.no_old_alone)
             rows.append(row)
             if args.json:
                 report(rows, summary(rows), args.json, quiet=True)
