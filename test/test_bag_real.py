@@ -455,3 +455,18 @@ def test_validation_compares_the_whole_held_out_run_around_a_bad_sample(clean, t
     assert len(v.t) == len(full.t) == len(clean[3]) - held.first
     for c, f in full.fit.items():
         assert np.isfinite(v.fit[c]) and v.fit[c] == pytest.approx(f, abs=0.05), c
+
+
+def test_a_joint_named_twice_in_one_state_is_one_line(clean, tmp_path, capsys):
+    # issue #31: a duplicated joint was answered with the second copy's values, uncounted
+    d, cfg, tr, x, types, msgs, custom = clean
+    st = list(msgs["/state"])
+    _, pos, vel, eff = cdr.joint_states([b for _, b in st])
+    names = ["actuator", "chamber_1", "chamber_2", "actuator"]
+    arrays = [np.column_stack([a, a[:, :1] + 1.0]) for a in (pos, vel, eff)]
+    twice = cdr.encode_joint_states(cdr.stamps_ns([b for _, b in st]), names, *arrays)
+    path = _write(tmp_path / "twice_joint", {"/joint_states": types["/state"], CMD: "std_msgs/msg/Float64MultiArray"},
+                  {"/joint_states": list(zip([lt for lt, _ in st], twice)),
+                   CMD: [(lt + 1, c) for (lt, _), c in zip(st, cdr.encode_float64_arrays(tr["u"][:, None]))]},
+                  custom)
+    _one_line_exit_2(["score", str(path)], capsys, "/joint_states: message 0: joint actuator named twice")

@@ -287,6 +287,7 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
     datas = [d for _, d in messages]
     try:
         names, pos, vel, eff = cdr.joint_states(datas, where)
+        _unique(names, 0, where)
         if all(len(d) >= 12 for d in datas):
             arrays = (pos, vel, eff)
             res = resolve(names, mapping)
@@ -310,6 +311,7 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
                            f"not a {JOINT_STATE}")
         key = tuple(lay.names)
         if key not in cache:
+            _unique(lay.names, k, where)
             cache[key] = resolve(lay.names, mapping)
         arrays = [np.frombuffer(d, "<f8", n, off) for off, n in (lay.position, lay.velocity, lay.effort)]
         v = read_state(arrays, cache[key])
@@ -318,6 +320,14 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
         sec, nsec = struct.unpack_from("<iI", d, 4)
         stamps[k], rows[k] = sec * 1_000_000_000 + nsec, v
     return stamps, rows
+
+
+def _unique(names, k: int, where: str) -> None:
+    """One line when a JointState names a joint twice: which copy is the joint's is not said."""
+    twice = sorted({n for n in names if list(names).count(n) > 1})
+    if twice:
+        raise BagError(f"{where}: message {k}: joint{'s' * (len(twice) > 1)} {', '.join(twice)} named twice in one "
+                       "JointState: refused (which copy is the joint's?)")
 
 
 def _missing(names, mapping, res, k: int, where: str, what: str, lengths=None):
