@@ -297,3 +297,176 @@ def test_ros2_control_commands_pair_by_log_time_the_first_after_each_state_wins(
     np.testing.assert_array_equal(rec.u, u)
     assert any(f"{len(u)} commands not first after their state and 1 logged before the first state: ignored" in n
                for n in notes), notes
+
+
+# --- issue #31: every reader of recorded samples, one policy ----------------------------------------
+
+
+def _one_state(clean, tmp_path, name, row, column, value, topics=("/state", "/true_state")):
+    """The clean bag with state ``row``'s value ``column`` (3 x array + joint: 0 y, 7 P1) set to ``value``."""
+    d, cfg, tr, x, types, msgs, custom = clean
+    msgs = {t: list(m) for t, m in msgs.items()}
+    for t in topics:
+        lt, b = msgs[t][row]
+        _, pos, vel, eff = cdr.joint_states([b])
+        arrays = [pos.copy(), vel.copy(), eff.copy()]
+        arrays[column // 3][0, column % 3] = value
+        msgs[t][row] = (lt, cdr.encode_joint_states([_stamp_of(b)], ["actuator", "chamber_1", "chamber_2"],
+                                                    *arrays)[0])
+    return _write(tmp_path / name, types, msgs, custom)
+
+
+def test_an_impossible_value_is_a_sample_not_measured_for_every_reader(clean, tmp_path, capsys):
+    # one P1 = 1e300 Pa or y = 1e300 m: identify fits exactly what it fits with that sample NaN (the
+    # estimates cannot move through a channel weight), score interpolates it, plot draws a gap; each says so
+    d, cfg, tr, x, *_ = clean
+    nan = experiment_from_bag(_one_state(clean, tmp_path, "nan", 900, 0, np.nan), on_warning=_quiet)
+    for name, column in (("p1", 7), ("y", 0)):
+        path = _one_state(clean, tmp_path, name, 900, column, 1e300)
+        notes = []
+        exp = experiment_from_bag(path, on_warning=notes.append)
+        assert any("1 state with non-finite values" in n and "beyond what a sensor of this actuator reads" in n
+                   and "message 900" in n for n in notes), notes
+        np.testing.assert_array_equal(exp.x, nan.x)
+        np.testing.assert_array_equal(exp.gaps, nan.gaps)
+        assert exp.samples == nan.samples == len(x) - exp.first         # nothing after the sample is lost
+        assert main(["score", str(path)]) == 0
+        err = capsys.readouterr().err
+        assert "each interpolated from its neighbours" in err and "diverged" not in err, err
+        assert score_bag(path, on_warning=_quiet)[0].J == pytest.approx(score_bag(d / "clean")[0].J, rel=1e-4)
+        assert main(["plot", str(path), "--out", str(tmp_path / f"{name}.png")]) == 0, capsys.readouterr().err
+        assert "Traceback" not in capsys.readouterr().err
+
+
+def test_a_position_beyond_y_limit_and_back_is_one_bad_sample_and_one_to_the_end_is_said(clean, tmp_path):
+    d, cfg, tr, x, types, msgs, custom = clean
+    notes = []
+    exp = experiment_from_bag(_one_state(clean, tmp_path, "out", 900, 0, 5.0), on_warning=notes.append)
+    assert exp.samples == len(x) - exp.first and list(exp.gaps) == [900 - exp.first]
+    st = list(msgs["/state"])
+    for i in range(3000, len(st)):
+        _, pos, vel, eff = cdr.joint_states([st[i][1]])
+        pos[0, 0] = 5.0
+        st[i] = (st[i][0], cdr.encode_joint_states([_stamp_of(st[i][1])], ["actuator", "chamber_1", "chamber_2"],
+                                                   pos, vel, eff)[0])
+    notes = []
+    exp = experiment_from_bag(_write(tmp_path / "diverged", types, {**msgs, "/state": st}, custom),
+                              on_warning=notes.append)
+    assert exp.first + exp.samples == 3000
+    assert any("exceeds simulation.y_limit 1 m from t = 0.900000 s to the end (the run diverged)" in n
+               for n in notes), notes
+
+
+def test_score_says_what_it_scores(clean, derived, tmp_path, capsys):
+    # a non-finite true state inside the run: interpolated and said; from one on to the end: diverged, said
+    d = clean[0]
+    path = _one_state(clean, tmp_path, "nan_true", 900, 0, np.nan, topics=("/true_state",))
+    assert score_bag(path, on_warning=_quiet)[0].J == pytest.approx(score_bag(d / "clean")[0].J, rel=1e-4)
+    _, cfg, tr, x, types, msgs, custom = clean
+    true = list(msgs["/true_state"])
+    for i in range(3000, len(true)):
+        true[i] = _one_state_bytes(true[i], np.nan)
+    tail = _write(tmp_path / "nan_tail", types, {**msgs, "/true_state": true}, custom)
+    assert main(["score", str(tail)]) == 0
+    err = capsys.readouterr().err
+    assert "the states from t = 0.900000 s to the end are not finite: the run is scored as diverged" in err, err
+    # noise.added_by: plant and no true_state: the readings are scored, said
+    assert main(["score", str(derived["state_command"])]) == 0
+    err = capsys.readouterr().err
+    assert "noise.added_by is plant and the bag has no '…/true_state': the states on /state are scored as " \
+        "recorded (from the node graph: the sensors' readings" in err, err
+
+
+def _one_state_bytes(message, value):
+    lt, b = message
+    _, pos, vel, eff = cdr.joint_states([b])
+    pos[0, 0] = value
+    return lt, cdr.encode_joint_states([_stamp_of(b)], ["actuator", "chamber_1", "chamber_2"], pos, vel, eff)[0]
+
+
+def test_a_big_endian_message_is_one_line_naming_bag_and_byte_order(clean, tmp_path, capsys):
+    d, cfg, tr, x, types, msgs, custom = clean
+    st = [(lt, b"\x00\x00" + b[2:]) for lt, b in msgs["/state"]]
+    path = _write(tmp_path / "big_endian", types, {**msgs, "/state": st, "/true_state": st}, custom)
+    for cmd in ("score", "plot", "identify"):
+        extra = ["--out", str(tmp_path / "b.png")] if cmd == "plot" else []
+        _one_line_exit_2([cmd, str(path), *extra], capsys, "big_endian: /", "message 0: big-endian CDR")
+
+
+def test_a_bag_without_effort_is_one_line_naming_the_missing_interfaces(clean, tmp_path, capsys):
+    d, cfg, tr, x, types, msgs, custom = clean
+
+    def strip(m):
+        _, pos, vel, _ = cdr.joint_states([b for _, b in m])
+        return list(zip([lt for lt, _ in m], cdr.encode_joint_states(
+            cdr.stamps_ns([b for _, b in m]), ["actuator", "chamber_1", "chamber_2"], pos, vel, None)))
+    path = _write(tmp_path / "no_effort", types, {**msgs, "/state": strip(msgs["/state"]),
+                                                  "/true_state": strip(msgs["/true_state"])}, custom)
+    for cmd in ("score", "plot", "identify"):
+        extra = ["--out", str(tmp_path / "e.png")] if cmd == "plot" else []
+        _one_line_exit_2([cmd, str(path), *extra], capsys, "no_effort: /", "lack chamber_1/effort, chamber_2/effort")
+
+
+def test_a_library_warning_is_one_line_not_a_source_echo(clean, monkeypatch, capsys):
+    # issue #31: numpy's RuntimeWarnings leaked onto stderr as two lines each (message and source line)
+    import has_control.bag.score as scoring
+    original = scoring.score_arrays
+
+    def overflowing(*args, **kwargs):
+        np.float64(1e300) * np.float64(1e300)
+        return original(*args, **kwargs)
+    monkeypatch.setattr(scoring, "score_arrays", overflowing)
+    assert main(["score", str(clean[0] / "clean")]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("has-control: warning: RuntimeWarning: overflow"), err
+
+
+def test_a_recording_longer_than_the_readers_limit_is_refused_up_front(clean, tmp_path, monkeypatch, capsys):
+    # issue #31: a 10-minute recording took 3.9 GB in identify and 3 GB in plot; the readers hold every
+    # message, so a run beyond MAX_SAMPLES is refused from metadata.yaml's counts before a message is read
+    import shutil
+
+    import has_control.bag.read as reader
+    import has_control.bag.recorded as recorded
+    from has_control.bag.recorded import MAX_SAMPLES
+    d = clean[0]
+    long = tmp_path / "long"
+    shutil.copytree(d / "clean", long)
+    meta = (long / "metadata.yaml").read_text()
+    count = len(clean[3])
+    (long / "metadata.yaml").write_text(meta.replace(f"message_count: {count}", f"message_count: {MAX_SAMPLES + 1}"))
+    monkeypatch.setattr(reader, "_McapScan", None)               # a message read would raise TypeError
+    for cmd in ("score", "plot", "identify"):
+        extra = ["--out", str(tmp_path / "l.png")] if cmd == "plot" else []
+        _one_line_exit_2([cmd, str(long), *extra], capsys, f"has {MAX_SAMPLES + 1} messages (metadata.yaml)",
+                         f"more than the {MAX_SAMPLES} samples")
+    monkeypatch.undo()
+    monkeypatch.setattr(recorded, "MAX_SAMPLES", count - 1)         # a bare .mcap: counted once read
+    _one_line_exit_2(["score", str(d / "clean" / "clean.mcap")], capsys, f"{count} messages: more than the")
+
+
+def test_validation_compares_the_whole_held_out_run_around_a_bad_sample(clean, tmp_path):
+    # issue #31: with a NaN in the held-out run, --validate compared only the part before it
+    from has_control.identify.validate import validate
+    d, cfg = clean[0], clean[1]
+    full = validate(experiment_from_bag(d / "clean", on_warning=_quiet), cfg)
+    held = experiment_from_bag(_one_state(clean, tmp_path, "nan_held", 900, 0, np.nan), on_warning=_quiet)
+    v = validate(held, cfg)
+    assert len(v.t) == len(full.t) == len(clean[3]) - held.first
+    for c, f in full.fit.items():
+        assert np.isfinite(v.fit[c]) and v.fit[c] == pytest.approx(f, abs=0.05), c
+
+
+def test_a_joint_named_twice_in_one_state_is_one_line(clean, tmp_path, capsys):
+    # issue #31: a duplicated joint was answered with the second copy's values, uncounted
+    d, cfg, tr, x, types, msgs, custom = clean
+    st = list(msgs["/state"])
+    _, pos, vel, eff = cdr.joint_states([b for _, b in st])
+    names = ["actuator", "chamber_1", "chamber_2", "actuator"]
+    arrays = [np.column_stack([a, a[:, :1] + 1.0]) for a in (pos, vel, eff)]
+    twice = cdr.encode_joint_states(cdr.stamps_ns([b for _, b in st]), names, *arrays)
+    path = _write(tmp_path / "twice_joint", {"/joint_states": types["/state"], CMD: "std_msgs/msg/Float64MultiArray"},
+                  {"/joint_states": list(zip([lt for lt, _ in st], twice)),
+                   CMD: [(lt + 1, c) for (lt, _), c in zip(st, cdr.encode_float64_arrays(tr["u"][:, None]))]},
+                  custom)
+    _one_line_exit_2(["score", str(path)], capsys, "/joint_states: message 0: joint actuator named twice")

@@ -221,3 +221,76 @@ def test_fuzz_session_records(session_records, tmp_path):
             assert x.shape == (tuning.swarm.particles, 3)
             swarm.tell(np.ones(len(x)))
     _fuzz(seeds, check, tmp_path, "record.json", seed=2029, cases=SESSION_CASES, tokens=JSON_TOKENS)
+
+
+# --- issue #31: the reader of recorded samples, message by message --------------------------------
+
+MESSAGE_CASES = 600         # edits of one run's state and command messages (in memory; SECONDS ends it)
+
+
+@pytest.mark.system
+def test_fuzz_recorded_samples(small_bags, tmp_path):
+    """Each case edits the messages of a recorded run: a state or command
+    payload truncated or mutated, a message repeated, a conflicting second
+    state for a sample, a stamp moved. Every reader (read_recording, score's
+    recorded_run, plot's series_of) gives a result or one line, and a second,
+    different state for one sample is never taken silently."""
+    import copy
+
+    from has_control.bag.recorded import read_recording
+    from has_control.bag.series import series_of
+    from has_control.wire import cdr
+    (tmp_path / "run.mcap").write_bytes(small_bags[1])
+    base = read_bag(tmp_path / "run.mcap", on_warning=lambda m: None)
+    state = next(t for t in base.messages if t.endswith("/state"))
+    command = next(t for t in base.messages if t.endswith("/command"))
+    rng = np.random.default_rng(2031)
+    t0, counts = time.perf_counter(), {"accepted": 0, "refused": 0, "conflicts refused": 0}
+    for i in range(MESSAGE_CASES):
+        if time.perf_counter() - t0 > SECONDS:
+            break
+        bag = copy.copy(base)
+        bag.messages = {t: list(m) for t, m in base.messages.items()}
+        topic = state if i % 3 else command
+        m = bag.messages[topic]
+        k = int(rng.integers(0, len(m)))
+        lt, data = m[k]
+        kind = i % 5
+        conflict = False
+        if kind == 0:                                   # truncated payload
+            m[k] = (lt, data[:int(rng.integers(0, len(data)))])
+        elif kind == 1:                                 # mutated payload
+            m[k] = (lt, _mutate(rng, data))
+        elif kind == 2:                                 # the same message twice
+            m.insert(k + 1, (lt, data))
+        elif kind == 3:                                 # a second, different state for the sample
+            _, pos, vel, eff = cdr.joint_states([data])
+            pos = pos + 1e-3
+            other = cdr.encode_joint_states(cdr.stamps_ns([data]), ["actuator", "chamber_1", "chamber_2"]
+                                            if topic == state else ["valve"], pos, vel, eff)[0]
+            m.insert(k + 1, (lt + 1, other))
+            conflict = True
+        else:                                           # a stamp moved by up to 2 steps
+            ns = max(0, int(cdr.stamps_ns([data])[0]) + int(rng.integers(-600_000, 600_000)))
+            m[k] = (lt, data[:4] + np.array([ns // 10**9, ns % 10**9], "<u4").tobytes() + data[12:])
+        signal.setitimer(signal.ITIMER_REAL, HANG)
+        old = signal.signal(signal.SIGALRM, _alarm)
+        try:
+            for reader in (lambda: read_recording(bag, 3e-4, emit=False), lambda: recorded_run(bag),
+                           lambda: series_of(bag)):
+                try:
+                    reader()
+                    assert not conflict, f"case {i}: two different messages for one sample accepted"
+                    counts["accepted"] += 1
+                except HasControlError as exc:
+                    assert "\n" not in str(exc), (i, str(exc))
+                    if conflict:
+                        assert "two different" in str(exc), (i, str(exc))
+                    counts["conflicts refused" if conflict else "refused"] += 1
+        except Hang:
+            pytest.fail(f"recorded samples case {i} hangs")
+        finally:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, old)
+    assert sum(counts.values()) >= 150 and counts["conflicts refused"] >= 15 and counts["accepted"] >= 50, counts
+    print(f"recorded samples: {counts}")

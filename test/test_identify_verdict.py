@@ -1,6 +1,7 @@
 """The verdict on an identified model: residuals against the sensors' noise,
 their whiteness and independence from the command, the validated band, and
 what it does to the estimates' statuses and the params file."""
+import dataclasses
 import math
 
 import numpy as np
@@ -9,9 +10,9 @@ import pytest
 from has_control.config import CONFIG_DIR, build_config, flatten, load_config, load_yaml
 from has_control.core.episode import simulate
 from has_control.identify.data import Experiment, experiment_from_trace
-from has_control.identify.fit import identify
+from has_control.identify.fit import Estimate, apply_verdict, identify
 from has_control.identify.params_out import adaptation_bounds, excluded_by_adaptation, params_yaml
-from has_control.identify.verdict import RESIDUAL_RATIO, band_hz, noise_levels
+from has_control.identify.verdict import RESIDUAL_RATIO, band_hz, broadband_hz, noise_levels
 
 TRUTH = {"plant.mass": 1720.0, "plant.damping": 3300.0, "plant.bulk_modulus": 5.6e8, "plant.leakage": 4.5e-13,
          "plant.valve_gain": 3.3e-4, "plant.valve_time_constant": 8e-4}
@@ -154,3 +155,48 @@ def test_rows_without_a_measurement_do_not_set_the_noise_level():
         held[g] = held[g - 1]                               # a gap holds the previous sample
     assert noise_levels(held, gaps)[0] == pytest.approx(1e-6, rel=0.05)
     assert noise_levels(held)[0] > 1.2e-6                   # without the mask the holds inflate it
+
+
+def _limit_cycle(t, f0=88.0):
+    """The loop's own oscillation through the valve as the study's spools of 81-100 Hz showed it:
+    one line, its frequency and amplitude drifting with the experiment's operating point."""
+    f = f0 + 3.0 * np.sin(2 * np.pi * 0.1 * t)
+    return 8e-4 * (1.0 + 0.3 * np.sin(2 * np.pi * 0.2 * t)) * np.sin(2 * np.pi * np.cumsum(f) * (t[1] - t[0]))
+
+
+def _chirp(t, f0, f1, amp):
+    return amp * np.sin(2 * np.pi * (f0 * t + (f1 - f0) * t * t / (2 * t[-1])))
+
+
+def test_a_limit_cycle_is_a_line_not_a_broadband_excitation():
+    rng = np.random.default_rng(4)
+    t = np.arange(33334) * 3e-4
+    noise = 2e-6 * rng.standard_normal(len(t))
+    old = _chirp(t, 0.2, 3.0, 2e-3) + _limit_cycle(t) + noise
+    assert band_hz(old, 3e-4) > 80.0                   # the oscillation sets the 99 % band
+    broad, line, share = broadband_hz(old, 3e-4)
+    assert broad < 10.0 and line == pytest.approx(88.0, abs=4.0) and share > 0.1
+    valve = _chirp(t, 5.0, 200.0, 3e-5) + _limit_cycle(t) + noise
+    assert broadband_hz(valve, 3e-4)[0] >= 150.0       # the chirp under the same line is broadband
+    assert broadband_hz(_chirp(t, 0.2, 3.0, 2e-3) + noise, 3e-4)[0] == pytest.approx(
+        band_hz(_chirp(t, 0.2, 3.0, 2e-3) + noise, 3e-4), abs=1.5)
+
+
+def test_a_spool_seen_through_a_limit_cycle_is_not_determined_nor_identified(in_class):
+    # issue #27: from the old experiment alone, three spools of 81-100 Hz oscillated (band 52-92 Hz) and
+    # were called adequate with their valve "determined"; on one, omega_n's tight interval missed the truth
+    _, res = in_class
+    v = dataclasses.replace(res.verdict, band_hz=92.3, valve_corner_hz=100.4, broadband_hz=4.4, line_hz=88.3,
+                            line_share=0.74)
+    assert v.adequate and not v.valve_determined
+    assert "valve dynamics NOT DETERMINED" in v.line() and "one line" in v.line() and "88.3 Hz" in v.line()
+    spool = {"valve_frequency": Estimate("valve_frequency", 100.9, 0.1, 100.7, 101.1, "identified", 150.0, 100.0),
+             "valve_damping_ratio": Estimate("valve_damping_ratio", 0.6, 1e-3, 0.598, 0.602, "identified", 0.7, 0.6)}
+    judged = apply_verdict(dataclasses.replace(res, estimates={**res.estimates, **spool}), v)
+    for k in spool:
+        assert judged.estimates[k].status == "poorly determined" and "exact form" in judged.estimates[k].why
+    assert judged.estimates["mass"].identified                     # the rest keeps its status
+    seen = dataclasses.replace(v, broadband_hz=250.0)
+    assert seen.valve_determined
+    assert apply_verdict(dataclasses.replace(res, estimates={**res.estimates, **spool}), seen).estimates[
+        "valve_frequency"].identified

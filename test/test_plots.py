@@ -358,3 +358,19 @@ def test_convergence_legend_says_how_many_seeds_it_averages():
     fig = draw_convergence_spread([("pso", [_Result([300.0, 2.0, 1.0])])])
     assert fig.axes[0].get_yscale() == "log"                                 # over decades
     matplotlib.pyplot.close(fig)
+
+
+def test_a_label_with_dollar_signs_is_drawn_as_written(tmp_path):
+    # issue #31: a bag named 'a$b_{$x' (or any label with '$') was parsed as mathtext and raised
+    from has_control.plots.identification import plot_validation
+    t = np.arange(50) * 3e-4
+    states = np.column_stack([np.sin(t), np.cos(t), 5e6 + t, 4e6 + t])
+    out = plot_validation(t, states, states * 1.01, {"y": 99.0, "P1": 98.0, "P2": 97.0}, tmp_path / "v.png",
+                          "Identified plant against run$_{$x^ (held out)")
+    assert out.read_bytes()[:4] == b"\x89PNG"
+    cfg = with_horizon(Config(), 1.2)
+    fig = draw([view_of_trace(simulate(cfg), cfg, "gains $k_1$ and 50$")], title="$x_{").fig
+    assert fig._suptitle.get_text() == "$x_{"
+    import matplotlib.pyplot as plt
+    fig.canvas.draw()                           # the text is laid out: no mathtext parse
+    plt.close(fig)

@@ -21,8 +21,8 @@ goes to its nearest sample when within :data:`TOLERANCE` of a step (±0.4 Δt,
 offset. On the grid: repeated identical messages for a sample are collapsed
 and counted; two different states for one sample are refused naming the
 sample; samples without a state are counted (dropped); states with
-non-finite values are counted and flagged (each consumer says what it does
-with them); a truncated or malformed CDR payload is one line naming the
+non-finite values, or values beyond :data:`IMPOSSIBLE`, are counted, read as
+NaN and flagged (each consumer says what it does with them); a truncated or malformed CDR payload is one line naming the
 message. Every finding is one line on ``bag.on_warning`` before any result.
 """
 from __future__ import annotations
@@ -30,11 +30,14 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
-from has_control.bag.base import BagError
-from has_control.bag.read import Bag
+from has_control.bag.base import BagError, warn
+from has_control.bag.read import MAX_METADATA_BYTES, Bag, read_bag
+from has_control.common.errors import HasControlError
+from has_control.config import load_yaml
 from has_control.wire import cdr
 from has_control.wire.joint_mapping import (
     DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC, DEFAULT_STATE_INTERFACES, INTERFACE_KINDS,
@@ -48,6 +51,14 @@ TOLERANCE = 0.4
 EPOCH_NS = 86_400 * 1_000_000_000
 #: Stamps reaching this many samples beyond the message count are not one run.
 MAX_SPREAD = 100
+#: Magnitudes no sensor of this actuator reads (y [m], ẏ [m/s], P1, P2 [Pa]): a state beyond is read as
+#: not measured (NaN), counted in the non-finite states' line (a 1e300 sample must not set a fit's weights
+#: or a figure's axes).
+IMPOSSIBLE = np.array([1e2, 1e3, 1e10, 1e10])
+#: The most samples a reader of recorded samples takes (60 s at the reference 0.3 ms step): its
+#: memory grows with the recording (every message is held), so a longer run is refused up front,
+#: from metadata.yaml's message counts, before a message is read (docs/bags.md: the peaks measured).
+MAX_SAMPLES = 200_000
 #: The has_control layout's command: joint ``valve``, position [m].
 VALVE = [(COMMAND_NAMES[0], 0)]
 
@@ -143,6 +154,39 @@ def _named(bag: Bag, topic: str) -> str:
     return topic
 
 
+def read_run_bag(path: str | Path, on_warning=warn) -> Bag:
+    """The bag at ``path`` for ``identify``, ``score`` and ``plot``: refused
+    up front (one line naming the limit) when metadata.yaml counts more than
+    MAX_SAMPLES messages on a topic; a bare .mcap is counted once read
+    (:func:`read_recording`)."""
+    path = Path(path)
+    counts = _metadata_counts(path / "metadata.yaml") if path.is_dir() else {}
+    long = {t: c for t, c in counts.items() if c > MAX_SAMPLES}
+    if long:
+        t, c = max(long.items(), key=lambda tc: tc[1])
+        raise BagError(f"{path}: {t} has {c} messages (metadata.yaml): more than the {MAX_SAMPLES} samples "
+                       f"(60 s at 0.3 ms) identify, score and plot read, as their memory grows with the "
+                       "recording; record or split the run into shorter bags")
+    return read_bag(path, topics=None, on_warning=on_warning)
+
+
+def _metadata_counts(meta: Path) -> dict[str, int]:
+    """Messages per topic as metadata.yaml states them; {} when it does not
+    (read_bag then says what is wrong with the file)."""
+    try:
+        if not meta.is_file() or meta.stat().st_size > MAX_METADATA_BYTES:
+            return {}
+        info = load_yaml(meta.read_text(), str(meta), BagError, "malformed YAML").get("rosbag2_bagfile_information")
+        out = {}
+        for entry in info.get("topics_with_message_count") or []:
+            name, count = entry["topic_metadata"]["name"], entry["message_count"]
+            if isinstance(name, str) and isinstance(count, int):
+                out[name] = count
+        return out
+    except (HasControlError, AttributeError, KeyError, TypeError, OSError, UnicodeDecodeError):
+        return {}
+
+
 def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
                    true_state: bool = False, emit: bool = True) -> Recording:
     """The states and commands of ``bag`` on the grid of ``step`` [s] (None:
@@ -154,6 +198,9 @@ def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
     messages = bag.messages.get(st, [])
     if not messages:
         raise BagError(f"{where}: no messages")
+    if len(messages) > MAX_SAMPLES:
+        raise BagError(f"{where}: {len(messages)} messages: more than the {MAX_SAMPLES} samples (60 s at 0.3 ms) "
+                       "identify, score and plot read; record or split the run into shorter bags")
     entries = reading.state_interfaces or DEFAULT_STATE_INTERFACES
     try:
         mapping = parse_state_interfaces(entries)
@@ -175,6 +222,11 @@ def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
                      f"message taken as its nearest sample (tolerance ±{TOLERANCE:g} step = "
                      f"{TOLERANCE * step * 1e6:g} µs)")
     finite = np.isfinite(x).all(axis=1)
+    impossible = finite & (np.abs(x) > IMPOSSIBLE[:x.shape[1]]).any(axis=1)
+    if impossible.any():                 # read as not measured: every consumer treats it as a bad sample
+        x = x.copy()
+        x[impossible] = math.nan
+        finite &= ~impossible
     n = int(idx.max()) + 1
     if n > MAX_SPREAD * len(idx) + 1_000_000:
         raise BagError(f"{where}: stamps up to sample {n - 1} for {len(idx)} messages: not one run")
@@ -184,7 +236,12 @@ def read_recording(bag: Bag, step: float | None, reading: Reading = Reading(),
                      "(one state per sample)")
     nonfinite = int((~finite).sum())
     if nonfinite:
-        notes.append(f"{where}: {nonfinite} state{'s' * (nonfinite != 1)} with non-finite values (NaN or inf)")
+        wild = int(impossible.sum())
+        bad = np.flatnonzero(~finite)
+        notes.append(f"{where}: {nonfinite} state{'s' * (nonfinite != 1)} with non-finite values (NaN or inf"
+                     + (f"; {wild} beyond what a sensor of this actuator reads, |y| > {IMPOSSIBLE[0]:g} m, "
+                        f"|ẏ| > {IMPOSSIBLE[1]:g} m/s or |P| > {IMPOSSIBLE[2]:g} Pa" if wild else "")
+                     + f"), the first message {int(bad[0])}: read as not measured")
     first = int(np.argmax(have))
     gaps = np.flatnonzero(~have[first:])
     if len(gaps):
@@ -230,12 +287,13 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
     datas = [d for _, d in messages]
     try:
         names, pos, vel, eff = cdr.joint_states(datas, where)
+        _unique(names, 0, where)
         if all(len(d) >= 12 for d in datas):
             arrays = (pos, vel, eff)
             res = resolve(names, mapping)
             if all(0 <= j < arrays[k].shape[1] for j, k in res):
                 return cdr.stamps_ns(datas), np.column_stack([arrays[k][:, j] for j, k in res])
-            _missing(names, mapping, res, 0, where, what)
+            _missing(names, mapping, res, 0, where, what, [a.shape[1] for a in arrays])
     except _MALFORMED:
         pass
     stamps, rows, cache = np.zeros(len(datas), np.int64), np.zeros((len(datas), len(mapping))), {}
@@ -246,22 +304,37 @@ def joint_values(messages, mapping, where: str, what: str) -> tuple[np.ndarray, 
         except _MALFORMED:
             ok = False
         if not ok:
+            if d[:2] in (b"\x00\x00", b"\x00\x02"):     # CDR_BE, PL_CDR_BE: the encapsulation header
+                raise BagError(f"{where}: message {k}: big-endian CDR (encapsulation {d[:2].hex()}): only "
+                               "little-endian CDR (0001) is read")
             raise BagError(f"{where}: message {k}: truncated or malformed CDR payload ({len(d)} bytes): "
                            f"not a {JOINT_STATE}")
         key = tuple(lay.names)
         if key not in cache:
+            _unique(lay.names, k, where)
             cache[key] = resolve(lay.names, mapping)
         arrays = [np.frombuffer(d, "<f8", n, off) for off, n in (lay.position, lay.velocity, lay.effort)]
         v = read_state(arrays, cache[key])
         if v is None:
-            _missing(lay.names, mapping, cache[key], k, where, what)
+            _missing(lay.names, mapping, cache[key], k, where, what, [len(a) for a in arrays])
         sec, nsec = struct.unpack_from("<iI", d, 4)
         stamps[k], rows[k] = sec * 1_000_000_000 + nsec, v
     return stamps, rows
 
 
-def _missing(names, mapping, res, k: int, where: str, what: str):
-    lack = [f"{joint}/{INTERFACE_KINDS[kind]}" for (joint, kind), (j, _) in zip(mapping, res) if j < 0] or \
+def _unique(names, k: int, where: str) -> None:
+    """One line when a JointState names a joint twice: which copy is the joint's is not said."""
+    twice = sorted({n for n in names if list(names).count(n) > 1})
+    if twice:
+        raise BagError(f"{where}: message {k}: joint{'s' * (len(twice) > 1)} {', '.join(twice)} named twice in one "
+                       "JointState: refused (which copy is the joint's?)")
+
+
+def _missing(names, mapping, res, k: int, where: str, what: str, lengths=None):
+    """One line: the mapped joint/interface pairs message k lacks (a joint not named, or an interface
+    array shorter than the joint's index, e.g. a JointState without effort)."""
+    lack = [f"{joint}/{INTERFACE_KINDS[kind]}" for (joint, kind), (j, c) in zip(mapping, res)
+            if j < 0 or (lengths is not None and j >= lengths[c])] or \
         [f"{joint}/{INTERFACE_KINDS[kind]}" for joint, kind in mapping]
     raise BagError(f"{where}: message {k}: joints {list(names)} lack {', '.join(lack)} of {what}: "
                    "a bag of another model (or set --state-interfaces)")

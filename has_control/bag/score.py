@@ -1,6 +1,7 @@
 """What a run's bag says: the samples of a lock-step run, and its score (SPEC §6)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
@@ -8,10 +9,10 @@ from typing import Callable, Iterable
 import numpy as np
 
 from has_control.wire import cdr
-from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE
+from has_control.wire.topics import COMMAND, FLOAT64_ARRAY, JOINT_STATE, REFERENCE, TRUE_STATE
 from has_control.bag.base import PARAMETERS_KEY, BagError, warn
-from has_control.bag.read import Bag, read_bag
-from has_control.bag.recorded import Reading, has_topic, on_grid, read_recording
+from has_control.bag.read import Bag
+from has_control.bag.recorded import Reading, has_topic, on_grid, read_recording, read_run_bag
 from has_control.core.episode import EpisodeArrays
 from has_control.core.reference import reference
 from has_control.bag.samples import RunSamples
@@ -37,9 +38,12 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
     States and commands are read by :func:`~has_control.bag.recorded.read_recording`
     (either layout, any epoch, jitter within its tolerance, repeats collapsed).
     The reference is ``…/controller/reference``, else recomputed from the
-    configuration (said in one line). Dropped states in runs of at most
+    configuration (said in one line). Dropped states, and states read as not
+    measured (non-finite or impossible values), in runs of at most
     MAX_INTERPOLATED samples are interpolated from their neighbours (said in
-    one line). Refused, one line: an incomplete bag (truncated or damaged), a
+    one line); non-finite states to the end of the recording are the run
+    diverging (J = inf, said). A ``noise.added_by: plant`` bag without
+    ``true_state`` scores the readings, said in one line. Refused, one line: an incomplete bag (truncated or damaged), a
     longer gap or a sample without its command (the J of what is left would
     not be the run's), fewer samples than the
     configuration's horizon unless the run diverged."""
@@ -53,8 +57,18 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
                        f"ros2_control layout's {FLOAT64_ARRAY} commands); topics: {', '.join(sorted(bag.types))}")
     n = min(rec.samples, cfg.episode.samples, _through(rec.command))
     x = rec.x.copy()
-    filled = _interpolated(rec.state[:n], x[:n])
-    for what, have in (("state", rec.state if not filled else np.ones_like(rec.state)), ("command", rec.command)):
+    finite = np.isfinite(x).all(axis=1)
+    state = rec.state & finite
+    # a state read as not measured (non-finite or impossible, counted in rec.notes) inside the run is a
+    # dropped sample; from one on to the end, the run diverged there (J = inf, said below)
+    tail = _through(state[:n])
+    bad_tail = int((rec.state[tail:n] & ~finite[tail:n]).sum())
+    if bad_tail:
+        n = tail + 1
+        x[tail] = math.inf
+        state[tail] = True
+    filled = _interpolated(state[:n], x[:n])
+    for what, have in (("state", state if not filled else np.ones_like(state)), ("command", rec.command)):
         lack = np.flatnonzero(~have[:n])
         if len(lack):
             topic = rec.state_topic if what == "state" else rec.command_topic
@@ -65,7 +79,15 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
         bag.on_warning(line)
     if filled:
         bag.on_warning(f"{bag.path}: {filled} of {n} samples without a state: each interpolated from its "
-                       f"neighbours (gaps of at most {MAX_INTERPOLATED} samples) to score the run")
+                       f"neighbours (gaps of at most {MAX_INTERPOLATED} samples) to score the run (dropped, or "
+                       "read as not measured)")
+    if bad_tail:
+        bag.on_warning(f"{bag.path}: {rec.state_topic}: the states from t = {tail * rec.step:.6f} s to the end are "
+                       "not finite: the run is scored as diverged there (J = inf)")
+    if getattr(cfg.noise, "added_by", "") == "plant" and not rec.state_topic.endswith(TRUE_STATE):
+        bag.on_warning(f"{bag.path}: noise.added_by is plant and the bag has no '…/{TRUE_STATE}': the states on "
+                       f"{rec.state_topic} are scored as recorded (from the node graph: the sensors' readings, "
+                       "not the plant's true states)")
     step = cfg.episode.step
     if has_topic(bag, REFERENCE, FLOAT64_ARRAY):
         rf = bag.find(REFERENCE, FLOAT64_ARRAY)
@@ -126,6 +148,6 @@ def score_bag(path: str | Path, overrides: Iterable[str | Path] = (),
               on_warning: Callable[[str], None] = warn, reading: Reading = Reading()):
     """J, e_max, e_μ, e_σ of a recorded lock-step run (SPEC §6), as the core
     scores it; warnings (truncation, missing parameters) go to ``on_warning``."""
-    bag = read_bag(path, topics=None, on_warning=on_warning)
+    bag = read_run_bag(path, on_warning=on_warning)
     run = recorded_run(bag, overrides, reading)
     return score_arrays(run["e1"], run.u, run.cfg.episode.as_array(), diverged=run.diverged), run

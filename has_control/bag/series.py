@@ -38,8 +38,8 @@ from typing import Callable, Iterable
 import numpy as np
 
 from has_control.bag.base import PARAMETERS_KEY, BagError, warn
-from has_control.bag.read import Bag, read_bag
-from has_control.bag.recorded import Reading, Recording, read_recording
+from has_control.bag.read import Bag
+from has_control.bag.recorded import Reading, Recording, read_recording, read_run_bag
 from has_control.bag.samples import RunSamples
 from has_control.common.errors import HasControlError
 from has_control.config import build_config
@@ -76,7 +76,7 @@ class RunSeries(RunSamples):
 def run_series(path: str | Path, overrides: Iterable[str | Path] = (),
                on_warning: Callable[[str], None] = warn, reading: Reading = Reading()) -> RunSeries:
     """The run recorded in the bag at ``path`` (see the module docstring)."""
-    bag = read_bag(path, topics=None, on_warning=on_warning)
+    bag = read_run_bag(path, on_warning=on_warning)
     return series_of(bag, overrides, reading)
 
 

@@ -144,9 +144,10 @@ def main(argv=None) -> int:
     return 0
 
 
-def report(rows: list[dict], s: dict, path: str | None) -> None:
-    """A study's summary on stdout and, with ``path``, every row and the summary as JSON."""
-    print(json.dumps(s, indent=1, default=float))
+def report(rows: list[dict], s: dict, path: str | None, quiet: bool = False) -> None:
+    """A study's summary on stdout (unless ``quiet``) and, with ``path``, every row and the summary as JSON."""
+    if not quiet:
+        print(json.dumps(s, indent=1, default=float))
     if path:
         with open(path, "w") as f:
             json.dump({"rows": rows, "summary": s}, f, indent=1, default=float)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from has_control.cli.args import add_reading, reading_of
 
 from has_control.bag import PARAMETERS_KEY, describe, read_bag
+from has_control.bag.base import warnings_as_lines
 from has_control.bag.recorded import read_recording
 from has_control.common.errors import HasControlError
 
@@ -14,6 +15,7 @@ def add_arguments(p) -> None:
     add_reading(p)
 
 
+@warnings_as_lines()
 def run(args) -> int:
     bag = read_bag(args.bag)
     print(describe(bag))

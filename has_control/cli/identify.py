@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 
+from has_control.bag.base import warnings_as_lines
 from has_control.cli.args import add_config, add_json, add_reading, check_apart, check_outputs, figure_path, reading_of
 from has_control.common.errors import HasControlError
 
@@ -37,6 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.set_defaults(func=run)
 
 
+@warnings_as_lines()
 def run(args) -> int:
     # lazy: numba kernels and SciPy load in ~1 s; the other subcommands should not wait for them
     from has_control.identify import identify_bags

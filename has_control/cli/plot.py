@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from has_control.bag.base import warnings_as_lines
 from has_control.cli.args import add_reading, figure_path, number, reading_of
 from has_control.common.errors import HasControlError
 from has_control.common.files import check_output
@@ -34,6 +35,7 @@ def default_out(bag: str) -> Path:
     return Path((p.stem if p.suffix == ".mcap" else p.name) or "run").with_suffix(".png")
 
 
+@warnings_as_lines()
 def run(args) -> int:
     # lazy: the bag reader and matplotlib load only once the arguments are good
     from has_control.bag.series import run_series

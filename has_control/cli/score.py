@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 from has_control.bag import score_bag
+from has_control.bag.base import warnings_as_lines
 from has_control.cli.args import add_config, add_json, add_reading, reading_of
 
 
@@ -14,6 +15,7 @@ def add_arguments(p) -> None:
     add_json(p, "print the keys of simulate --json")
 
 
+@warnings_as_lines()
 def run(args) -> int:
     score, recorded = score_bag(args.bag, args.config or [], reading=reading_of(args))
     if args.json:

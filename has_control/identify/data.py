@@ -21,8 +21,7 @@ import numpy as np
 from numba import njit
 
 from has_control.bag.base import BagError, warn
-from has_control.bag.read import read_bag
-from has_control.bag.recorded import Reading, layout_of, read_recording
+from has_control.bag.recorded import Reading, layout_of, read_recording, read_run_bag
 from has_control.common.errors import HasControlError
 from has_control.core.jit import KERNEL
 from has_control.core.noise import measurement_noise, noise_on, sensor_readings
@@ -77,12 +76,13 @@ def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
     parameters (custom data) give the configuration, else the shipped files,
     each overridden by ``overrides``. The experiment runs from the first to
     the last sample with a finite state and its command, stopping where
-    |y| exceeds ``simulation.y_limit`` (diverged); the samples between without
-    one (dropped, non-finite, unanswered) are its ``gaps``, said in one line:
+    |y| exceeds ``simulation.y_limit`` for good (diverged, said in one line); the
+    samples between without one (dropped, non-finite, beyond the limit and back,
+    unanswered) are its ``gaps``, said in one line:
     no segment that spans one is fitted. Raises :class:`IdentificationError`
     or BagError naming the bag and what is missing.
     """
-    bag = read_bag(path, topics=None, on_warning=on_warning)
+    bag = read_run_bag(path, on_warning=on_warning)
     cfg = bag.config(overrides)
     _, _, cm = layout_of(bag, reading)
     if cm is None or not bag.messages.get(cm):
@@ -101,8 +101,15 @@ def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
     if not usable.any():
         raise IdentificationError(f"{path}: no command answers a recorded state (their stamps never match)")
     out = rec.state & np.isfinite(rec.x[:, 0]) & (np.abs(rec.x[:, 0]) > cfg.episode.y_limit)
-    stop = int(np.argmax(out)) if out.any() else rec.samples
-    usable[stop:] = False
+    usable &= ~out
+    diverged = ""
+    if out.any() and not usable[int(np.flatnonzero(out)[-1]):].any():
+        # the run ends beyond the limit (diverged): identified up to there; an excursion the run comes
+        # back from is a bad sample (a gap), never a reason to drop the rest
+        stop = int(np.flatnonzero(out & ~np.maximum.accumulate(usable[::-1])[::-1])[0])
+        usable[stop:] = False
+        diverged = (f"{path}: |y| exceeds simulation.y_limit {cfg.episode.y_limit:g} m from t = "
+                    f"{stop * cfg.episode.step:.6f} s to the end (the run diverged): identified up to there")
     good = np.flatnonzero(usable)
     if len(good) < MIN_SAMPLES:
         raise IdentificationError(f"{path}: {len(good)} usable samples of state and command; "
@@ -112,12 +119,12 @@ def experiment_from_bag(path: str | Path, overrides: Iterable[str | Path] = (),
     gaps = np.flatnonzero(~ok)
     keep = np.maximum.accumulate(np.where(ok, np.arange(len(ok)), 0))     # a gap holds the last usable sample
     xx, uu = rec.x[first:last][keep], rec.u[first:last][keep]
-    for line in rec.notes:                    # once the recording is accepted: a refusal stays one line
+    for line in rec.notes + ([diverged] if diverged else []):   # once accepted: a refusal stays one line
         on_warning(line)
     if len(gaps):
         on_warning(f"{path}: {len(gaps)} of {len(ok)} samples from t = {first * cfg.episode.step:.6f} s without "
-                   "a finite state and its command (dropped, non-finite or unanswered): identify leaves out "
-                   "every segment that spans one")
+                   "a finite state and its command (dropped, non-finite, beyond y_limit or unanswered): identify "
+                   "leaves out every segment that spans one")
     return Experiment(str(path), np.ascontiguousarray(xx), np.ascontiguousarray(uu), cfg, first,
                       gaps.astype(np.int64))
 

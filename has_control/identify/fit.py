@@ -230,8 +230,8 @@ class _Problem:
         """Weights 1/RMS per channel from the residuals at z (the sensors' noise,
         independent per channel and sample); returns the RMS [SI]."""
         r = np.concatenate(self.raw(z)).reshape(-1, 4)
-        sig = np.concatenate([e.x for e in self.exps]).std(axis=0)
-        rms = np.maximum(np.sqrt(np.mean(r ** 2, axis=0)), 1e-12 * np.maximum(sig, 1e-300))
+        sig = _rms(np.concatenate([e.x for e in self.exps]), centred=True)
+        rms = np.maximum(_rms(r), 1e-12 * np.maximum(sig, 1e-300))
         self.weights = 1.0 / rms
         return dict(zip(CHANNELS, map(float, rms)))
 
@@ -244,6 +244,20 @@ class _Problem:
             zm[k] -= h
             cols.append((self(zp) - self(zm)) / (2 * h))
         return np.column_stack(cols)
+
+
+def _rms(a: np.ndarray, centred: bool = False) -> np.ndarray:
+    """Each column's RMS (``centred``: its standard deviation) [its unit], the
+    plain formula unless a square overflows; then scaled by the column's
+    largest magnitude, so a 1e300 sample gives 1e300-ish, never inf or 0 (a
+    channel weight 1/RMS must not vanish or explode on one wild sample)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = a.std(axis=0) if centred else np.sqrt(np.mean(a * a, axis=0))
+    if np.isfinite(out).all():
+        return out
+    m = np.maximum(np.max(np.abs(a), axis=0), 1e-300)
+    b = a / m
+    return m * (b.std(axis=0) if centred else np.sqrt(np.mean(b * b, axis=0)))
 
 
 #: Steps of the initial state's sensitivities: y [m], ẏ [m/s], P1, P2 [Pa].
@@ -367,17 +381,27 @@ def valve_corner_hz(values: dict[str, float]) -> float:
     return 1.0 / (2.0 * math.pi * tau) if tau > 0.0 else math.inf
 
 
+#: The spool's own parameters, which only an excitation reaching its corner determines.
+SPOOL_KEYS = ("valve_frequency", "valve_damping_ratio")
+
+
 def apply_verdict(result: IdentificationResult, v: Verdict) -> IdentificationResult:
     """``result`` judged by ``v``: with an INADEQUATE model no estimate stays
     "identified" (its interval measures the noise, not the model's error).
     A valve whose dynamics the band does not reach keeps its τ_v (the
     low-frequency lag, which the data do determine): the verdict's line says
-    that its order is not seen."""
+    that its order is not seen; a second-order spool's ω_n and ζ are then at
+    most "poorly determined" (the low-frequency phase gives 2ζ/ω_n; a limit
+    cycle gives one gain and one phase, see :mod:`.verdict`)."""
     estimates = {}
     for k, e in result.estimates.items():
         if e.status == "identified" and not v.adequate:
             e = dataclasses.replace(e, status="poorly determined",
                                     why="the model is INADEQUATE: the interval holds for the model, not the machine")
+        elif e.status == "identified" and k in SPOOL_KEYS and not v.valve_determined:
+            e = dataclasses.replace(e, status="poorly determined",
+                                    why="the valve's dynamics are not determined by the command's broadband band: "
+                                        "the interval rests on the model's exact form")
         estimates[k] = e
     return dataclasses.replace(result, estimates=estimates, verdict=v)
 

@@ -36,6 +36,8 @@ RC = {
     "legend.fontsize": 9, "legend.framealpha": 0.9, "lines.linewidth": 1.3,
     "axes.prop_cycle": matplotlib.cycler(color=PALETTE), "axes.grid": True, "grid.alpha": 0.3,
     "grid.linewidth": 0.6, "axes.spines.top": False, "axes.spines.right": False,
+    # text is text: a bag's name or a label with '$' is drawn as written, never parsed as mathtext
+    "text.parse_math": False,
     "savefig.bbox": "tight", "savefig.pad_inches": 0.08, "axes.formatter.useoffset": False,
 }
 
