@@ -440,8 +440,12 @@ def test_a_recording_longer_than_the_readers_limit_is_refused_up_front(clean, tm
         extra = ["--out", str(tmp_path / "l.png")] if cmd == "plot" else []
         _one_line_exit_2([cmd, str(long), *extra], capsys, f"has {MAX_SAMPLES + 1} messages (metadata.yaml)",
                          f"more than the {MAX_SAMPLES} samples")
+    monkeypatch.setattr(recorded, "MAX_SAMPLES", count - 1)         # a bare .mcap: from its summary, up front
+    _one_line_exit_2(["score", str(d / "clean" / "clean.mcap")], capsys,
+                     f"has {count} messages (the MCAP summary)", f"more than the {count - 1} samples")
     monkeypatch.undo()
-    monkeypatch.setattr(recorded, "MAX_SAMPLES", count - 1)         # a bare .mcap: counted once read
+    monkeypatch.setattr(recorded, "MAX_SAMPLES", count - 1)         # a bare .mcap without a summary: once read
+    monkeypatch.setattr(recorded, "_summary_counts", lambda f: {})
     _one_line_exit_2(["score", str(d / "clean" / "clean.mcap")], capsys, f"{count} messages: more than the")
 
 
