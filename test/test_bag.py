@@ -94,6 +94,21 @@ def test_cli_score_and_bag_info(recorded, tmp_path):
     assert f"Count: {N}" in info.stdout and "Duration:          1.499700 s" in info.stdout
 
 
+def test_the_summary_counts_are_the_messages_other_readers_count(recorded, tmp_path):
+    """What the readers' length check reads up front (the summary's Statistics)
+    is what the mcap package counts; an unfinished file has no summary."""
+    from mcap.reader import make_reader
+    from has_control.bag.read import summary_message_counts
+    f = recorded[0] / "run.mcap"
+    with open(f, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    want = {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()}
+    assert summary_message_counts(f) == want and want["/state"] == N
+    torn = tmp_path / "torn.mcap"
+    torn.write_bytes(f.read_bytes()[:-100])
+    assert summary_message_counts(torn) == {}
+
+
 def test_other_readers_decode_every_message(recorded):
     """rosbags' AnyReader and mcap_ros2's reader agree with the in-process trace."""
     from mcap_ros2.reader import read_ros2_messages

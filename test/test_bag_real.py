@@ -445,7 +445,7 @@ def test_a_recording_longer_than_the_readers_limit_is_refused_up_front(clean, tm
                      f"has {count} messages (the MCAP summary)", f"more than the {count - 1} samples")
     monkeypatch.undo()
     monkeypatch.setattr(recorded, "MAX_SAMPLES", count - 1)         # a bare .mcap without a summary: once read
-    monkeypatch.setattr(recorded, "_summary_counts", lambda f: {})
+    monkeypatch.setattr(recorded, "summary_message_counts", lambda f, limit: {})
     _one_line_exit_2(["score", str(d / "clean" / "clean.mcap")], capsys, f"{count} messages: more than the")
 
 

@@ -232,6 +232,45 @@ def _check_summary(buf: bytes, f: Path, on_warning) -> None:
         on_warning(f"{f}: summary section CRC mismatch (the summary is not used for reading)")
 
 
+def summary_message_counts(f: Path, limit: int = 16 * 1024 * 1024) -> dict[str, int]:
+    """Messages per topic as the summary section of the MCAP file ``f`` states
+    them (its Channel and Statistics records), read from the file's end and
+    nothing of its data section; {} when it has no whole summary (an
+    unfinished file) or one larger than ``limit`` bytes."""
+    try:
+        with open(f, "rb") as stream:
+            size = stream.seek(0, 2)
+            if size < 16 + 8 + FOOTER_BYTES:
+                return {}
+            stream.seek(size - 8 - FOOTER_BYTES)
+            tail = stream.read(8 + FOOTER_BYTES)
+            if tail[-8:] != MAGIC or tail[0] != Op.FOOTER or struct.unpack_from("<Q", tail, 1)[0] != FOOTER_BYTES - 9:
+                return {}
+            start = struct.unpack_from("<Q", tail, 9)[0]
+            end = size - 8 - FOOTER_BYTES
+            if not 8 < start <= end or end - start > limit:
+                return {}
+            stream.seek(start)
+            buf = stream.read(end - start)
+        topics, counts, pos = {}, {}, 0
+        while pos + 9 <= len(buf):
+            op, length = buf[pos], struct.unpack_from("<Q", buf, pos + 1)[0]
+            body = buf[pos + 9:pos + 9 + length]
+            if op == Op.CHANNEL:
+                topics[struct.unpack_from("<H", body, 0)[0]] = decode_string(body, 4)[0]
+            elif op == Op.STATISTICS:
+                n = struct.unpack_from("<I", body, 42)[0]
+                counts = dict(struct.iter_unpack("<HQ", body[46:46 + n]))
+            pos += 9 + length
+        out: dict[str, int] = {}
+        for channel, count in counts.items():
+            if channel in topics:
+                out[topics[channel]] = out.get(topics[channel], 0) + count
+        return out
+    except (OSError, struct.error, UnicodeDecodeError):
+        return {}
+
+
 def _chunk_records(rec, f: Path) -> tuple[bytes | None, str]:
     """The uncompressed records of the Chunk whose content is ``rec``, checked
     against its size and CRC (CRC 0: not computed, accepted); else None and why."""

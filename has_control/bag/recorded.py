@@ -33,11 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.exceptions import McapError
-from mcap.reader import SeekingReader
 
 from has_control.bag.base import BagError, warn
-from has_control.bag.read import MAX_METADATA_BYTES, Bag, read_bag
+from has_control.bag.read import MAX_METADATA_BYTES, Bag, read_bag, summary_message_counts
 from has_control.common.errors import HasControlError
 from has_control.config import load_yaml
 from has_control.wire import cdr
@@ -164,7 +162,7 @@ def read_run_bag(path: str | Path, on_warning=warn) -> Bag:
     path = Path(path)
     counts, source = (_metadata_counts(path / "metadata.yaml"), "metadata.yaml") if path.is_dir() else ({}, "")
     if not counts and path.suffix == ".mcap" and path.is_file():
-        counts, source = _summary_counts(path), "the MCAP summary"
+        counts, source = summary_message_counts(path, MAX_METADATA_BYTES), "the MCAP summary"
     long = {t: c for t, c in counts.items() if c > MAX_SAMPLES}
     if long:
         t, c = max(long.items(), key=lambda tc: tc[1])
@@ -172,25 +170,6 @@ def read_run_bag(path: str | Path, on_warning=warn) -> Bag:
                        f"(60 s at 0.3 ms) identify, score and plot read, as their memory grows with the "
                        "recording; record or split the run into shorter bags")
     return read_bag(path, topics=None, on_warning=on_warning)
-
-
-def _summary_counts(f: Path) -> dict[str, int]:
-    """Messages per topic as a bare .mcap's summary section states them (its
-    Statistics and Channel records, read from the footer: nothing of the data
-    section); {} when it has none (an unfinished file: counted once read)."""
-    try:
-        with open(f, "rb") as stream:
-            summary = SeekingReader(stream, record_size_limit=MAX_METADATA_BYTES).get_summary()
-        if summary is None or summary.statistics is None:
-            return {}
-        out: dict[str, int] = {}
-        for channel, count in summary.statistics.channel_message_counts.items():
-            if channel in summary.channels:
-                topic = summary.channels[channel].topic
-                out[topic] = out.get(topic, 0) + int(count)
-        return out
-    except (McapError, OSError, ValueError, KeyError, struct.error, UnicodeDecodeError, EOFError, StopIteration):
-        return {}
 
 
 def _metadata_counts(meta: Path) -> dict[str, int]:
