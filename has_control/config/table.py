@@ -11,7 +11,7 @@ descriptors (:mod:`has_control.nodes.parameters`), each node's ``--help``
 them in step). The components' tables: the episode's configuration
 (:data:`has_control.config.schema.CONFIG_TABLE`), the tuning settings
 (:data:`has_control.tuning.parameters.TUNING_TABLE`) and each node's own
-(``PARAMETERS`` of :mod:`~has_control.nodes.plant_node`,
+(``OWN_PARAMETERS`` of :mod:`~has_control.nodes.plant_node`,
 :mod:`~has_control.nodes.controller_node`, :mod:`~has_control.nodes.tuner_node`).
 """
 from __future__ import annotations
