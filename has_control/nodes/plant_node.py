@@ -371,6 +371,8 @@ class PlantNode(LifecycleNode):
         if paced:
             self._report_realtime(stats)
             self.get_logger().info(paced_summary(self.realtime_stats))
+        else:
+            self._report_lockstep()               # the episode's last report: a run shorter than a second has one
         return stats
 
     run_realtime = run
