@@ -102,3 +102,9 @@ def test_bad_deploy_input_is_one_line_exit_2(capsys, argv, culprit):
         code = exc.code
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and culprit in err[0]
+
+
+def test_a_gap_is_flagged_over_2x_and_a_measured_j_far_below_the_prediction_is_not_called_within_2x():
+    from has_control.deploy.guarded import gap_words
+    assert gap_words(2.5) == "GAP over 2x" and gap_words(1.9) == gap_words(0.5) == "within 2x"
+    assert "within" not in gap_words(0.00266) and "no gap over 2x" in gap_words(0.00266)

@@ -129,8 +129,7 @@ class DeploymentResult:
                        + (f"; tripped again at {self.second_trip_at:.4f} s: safe gains" if self.second_trip_at else ""))
         g = self.gap
         if g is not None:
-            flag = "GAP over 2x" if g > 2.0 else "within 2x"
-            out.append(f"measured against predicted J: {g:.3g}x ({flag}; predicted {self.predicted_J:.6e})")
+            out.append(f"measured against predicted J: {g:.3g}x ({gap_words(g)}; predicted {self.predicted_J:.6e})")
         return out
 
     def as_json(self) -> dict:
@@ -143,6 +142,15 @@ class DeploymentResult:
                 "predicted_J": self.predicted_J, "gap": f(self.gap) if self.gap is not None else None,
                 "gap_over_2x": bool(self.gap is not None and self.gap > 2.0),
                 "plan": dataclasses.asdict(self.plan)}
+
+
+def gap_words(gap: float) -> str:
+    """How a measured-over-predicted J is reported: a gap over 2x is flagged
+    (the model promised far better than the machine gives); a measured J
+    below the predicted is said as such, not as "within 2x"."""
+    if gap > 2.0:
+        return "GAP over 2x"
+    return "within 2x" if gap >= 0.5 else "below the prediction, no gap over 2x"
 
 
 @njit(**KERNEL)

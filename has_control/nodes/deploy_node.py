@@ -33,7 +33,7 @@ from std_msgs.msg import Float64MultiArray
 from has_control.core.cost import score_arrays
 from has_control.core.episode import Col, simulate
 from has_control.core.params import Config
-from has_control.deploy.guarded import DeploymentPlan
+from has_control.deploy.guarded import DeploymentPlan, gap_words
 from has_control.deploy.stepping import Deployer
 from has_control.deploy.watchdog import WatchdogLimits
 from has_control.deploy.watched import Pairing, Watched, gains_of, internals_of
@@ -106,7 +106,7 @@ class NodeDeployment:
                        + f"; final gains ({', '.join(f'{k:.2f}' for k in self.final_gains)})")
         g = self.gap
         if g is not None:
-            out.append(f"measured against predicted J: {g:.3g}x ({'GAP over 2x' if g > 2.0 else 'within 2x'}; "
+            out.append(f"measured against predicted J: {g:.3g}x ({gap_words(g)}; "
                        f"the tuned gains' cost rate over their step against the prediction's over "
                        f"{self.predicted_horizon:g} s)")
         elif self.predicted_J is not None:
