@@ -17,11 +17,12 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC
+from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, INTERFACES
 from has_control.wire.topics import (COMMAND, COMMAND_LAYOUT, CONTROLLER_STATE_LAYOUT, FLOAT64_ARRAY,
                                      FORWARD_COMMAND_LAYOUT, GAINS_LAYOUT, JOINT_STATE)
 
-LAYOUTS = ("has_control", "ros2_control")
+#: The layouts a deployment watches (the loop's interfaces).
+LAYOUTS = INTERFACES
 
 
 def _f64(data: bytes, offset) -> float:

@@ -277,6 +277,3 @@ def make_port(interface: str, process, out: Outputs, conflicts: Conflicts, *, ma
     if interface == "ros2_control":
         return Ros2ControlPort(process, out, conflicts, mapping, state_topic, command_topic)
     return HasControlPort(process, out, conflicts, serialize)
-
-
-INTERFACES = ("has_control", "ros2_control")

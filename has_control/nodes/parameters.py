@@ -22,8 +22,7 @@ from rclpy.parameter import Parameter
 from has_control.common.errors import ConfigError
 from has_control.config import CONFIG_TABLE, Param, build_config, config_parameters, load_config, refusal
 from has_control.core.params import PLANT_OVERRIDES, Config
-from has_control.loop.ports import INTERFACES
-from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC
+from has_control.wire.joint_mapping import DEFAULT_COMMAND_TOPIC, DEFAULT_JOINT_STATES_TOPIC, INTERFACES
 
 _INT64_MAX = 2 ** 63 - 1
 

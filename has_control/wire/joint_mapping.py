@@ -14,6 +14,9 @@ DEFAULT_STATE_INTERFACES = ("actuator/position", "actuator/velocity", "chamber_1
 #: a forward_command_controller's ``std_msgs/Float64MultiArray`` commands.
 DEFAULT_JOINT_STATES_TOPIC = "/joint_states"
 DEFAULT_COMMAND_TOPIC = "/forward_command_controller/commands"
+#: The two documented layouts of a loop's topics: the project's stamped state/command
+#: JointStates, and the ros2_control one (JointState in, Float64MultiArray [u] out).
+INTERFACES = ("has_control", "ros2_control")
 
 
 def parse_state_interfaces(entries) -> list[tuple[str, int]]:
