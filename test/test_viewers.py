@@ -166,7 +166,7 @@ def _values(messages, field, index):
 
 def test_every_panel_of_the_shipped_layout_receives_data_from_stack_foxglove(domain_id):
     port = _free_port()
-    stack = _stack(port, domain_id, "--duration", "6", "--foxglove-wait", "90")
+    stack = _stack(port, domain_id, "--duration", "20", "--foxglove-wait", "90")   # several wall seconds of reports
     try:
         read = asyncio.run(_read_every_panel(port, 150))
         out, err = stack.communicate(timeout=120)
