@@ -14,21 +14,22 @@ from has_control.bag.base import PARAMETERS_KEY, BagError, warn
 from has_control.bag.read import Bag
 from has_control.bag.recorded import Reading, has_topic, on_grid, read_recording, read_run_bag
 from has_control.core.episode import EpisodeArrays
-from has_control.core.reference import reference
-from has_control.bag.samples import RunSamples
+from has_control.core.reference import reference_series
+from has_control.core.run import Run
 from has_control.core.cost import score_arrays
 
 
-@dataclass
-class RecordedRun(RunSamples):
-    """A lock-step run read back from its bag, one row per sample."""
+@dataclass(frozen=True)
+class RecordedRun(Run):
+    """A lock-step run read back from its bag, one row per sample (the
+    controller's columns NaN: a score needs state, command and reference)."""
 
     diverged: bool
     cfg: object
 
     @property
     def samples(self) -> int:
-        return len(self.u)
+        return len(self.data)
 
 
 def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Reading = Reading()) -> RecordedRun:
@@ -105,7 +106,7 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
                            f"samples have none, the first at t = {lack[0] * step:.6f} s)")
     else:
         rp = EpisodeArrays.from_config(cfg).reference
-        x1d = np.array([reference(rp, i * step)[0] for i in range(n)])
+        x1d = reference_series(rp, np.arange(n) * step)[:, 0]
         src = f"{PARAMETERS_KEY} of the bag" if PARAMETERS_KEY in bag.custom_data else "the configuration files"
         bag.on_warning(f"{bag.path}: no '…/{REFERENCE}' in the bag: the reference and the metrics recomputed "
                        f"from {src}" + (" and --config" if list(overrides) else ""))
@@ -114,8 +115,8 @@ def recorded_run(bag: Bag, overrides: Iterable[str | Path] = (), reading: Readin
     diverged = bool(bad.any())
     if not diverged and n < cfg.episode.samples:
         raise BagError(f"{bag.path}: {n} of {cfg.episode.samples} samples recorded: the run is incomplete")
-    return RecordedRun(np.arange(n) * step, y, x[:n, 1], x[:n, 2], x[:n, 3], rec.u[:n],
-                       x1d[:n], diverged, cfg)
+    return RecordedRun.of(np.arange(n) * step, x1d[:n], y, x[:n, 1], x[:n, 2], x[:n, 3], rec.u[:n],
+                          diverged=diverged, cfg=cfg)
 
 
 #: The longest run of dropped states a score interpolates over [samples] (0.9 ms at the reference step).

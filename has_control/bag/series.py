@@ -40,11 +40,11 @@ import numpy as np
 from has_control.bag.base import PARAMETERS_KEY, BagError, warn
 from has_control.bag.read import Bag
 from has_control.bag.recorded import Reading, Recording, read_recording, read_run_bag
-from has_control.bag.samples import RunSamples
 from has_control.common.errors import HasControlError
 from has_control.config import build_config
 from has_control.core.params import Config
-from has_control.core.reference import reference, reference_array
+from has_control.core.run import Run
+from has_control.core.reference import reference_array, reference_series
 from has_control.wire import cdr
 from has_control.wire.topics import (
     COMMAND, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, FLOAT64_ARRAY, GAINS, GAINS_COLUMNS,
@@ -52,14 +52,12 @@ from has_control.wire.topics import (
 )
 
 
-@dataclass
-class RunSeries(RunSamples):
+@dataclass(frozen=True)
+class RunSeries(Run):
     """One recorded run on its sample grid (row i: t = i·Δt); NaN where nothing was recorded."""
 
     name: str
     cfg: Config
-    a1_hat: np.ndarray         # [N·s/m]
-    a2_hat: np.ndarray         # [m³/(s·Pa)]
     gains_t: np.ndarray        # [s], when each gain set took effect
     gains: np.ndarray          # (m, 3) [1/s]
     missing: dict[str, np.ndarray]   # topic (relative name) -> samples of the state without a message
@@ -116,9 +114,9 @@ def series_of(bag: Bag, overrides: Iterable[str | Path] = (), reading: Reading =
     gt, gk = _gains(bag, cfg, grid)
     missed, failsafe = _missed(bag, grid)
     x = rec.x
-    return RunSeries(np.arange(n) * step, x[:, 0], x[:, 1], x[:, 2], x[:, 3], rec.u, x1d,
-                     name=Path(bag.path).name or str(bag.path), cfg=cfg, a1_hat=a1, a2_hat=a2, gains_t=gt,
-                     gains=gk, missing=missing, parameters=params, missed=missed, failsafe=failsafe)
+    return RunSeries.of(np.arange(n) * step, x1d, x[:, 0], x[:, 1], x[:, 2], x[:, 3], rec.u, a1_hat=a1, a2_hat=a2,
+                        name=Path(bag.path).name or str(bag.path), cfg=cfg, gains_t=gt, gains=gk, missing=missing,
+                        parameters=params, missed=missed, failsafe=failsafe)
 
 
 def _missed(bag: Bag, grid: "_Grid") -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -179,7 +177,7 @@ def _fill_reference(x1d: np.ndarray, cfg: Config, step: float) -> np.ndarray:
         return x1d
     rp = reference_array(cfg.reference, cfg.episode)
     out = x1d.copy()
-    out[gaps] = [reference(rp, i * step)[0] for i in gaps]
+    out[gaps] = reference_series(rp, gaps * step)[:, 0]
     return out
 
 

@@ -19,7 +19,7 @@ from has_control.bag.mcap_writer import McapWriter
 from has_control.config import config_parameters
 from has_control.core.actuator import joint_state
 from has_control.core.episode import Col, EpisodeArrays
-from has_control.core.reference import reference
+from has_control.core.reference import reference_series
 from has_control.wire.codec import column_label
 from has_control.wire.topics import (
     CLOCK, COMMAND, COMMAND_NAMES, CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, FLOAT64_ARRAY, GAINS, GAINS_COLUMNS,
@@ -210,7 +210,7 @@ def write_trace(writer: BagWriter, trace, cfg, prefix: str = "", log_offset_ns: 
     js = joint_state(d[:, Col.y], d[:, Col.ydot], d[:, Col.P1], d[:, Col.P2], cfg.actuator.as_array())
     pos, vel, eff = js[0:3], js[3:6], js[6:9]
     rp = EpisodeArrays.from_config(cfg).reference
-    ref = np.array([(ti, *reference(rp, ti)) for ti in t]).reshape(n, 5)
+    ref = np.column_stack([t, reference_series(rp, np.ascontiguousarray(t))]).reshape(n, 5)
     k = trace.gains.as_tuple()
     topics = {
         STATE: (JOINT_STATE, cdr.encode_joint_states(stamps, STATE_NAMES, np.column_stack(pos),

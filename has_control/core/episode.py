@@ -18,7 +18,6 @@ import math
 import os
 import threading
 from dataclasses import dataclass
-from enum import IntEnum
 
 import numpy as np
 import numba
@@ -41,31 +40,10 @@ from has_control.core.params import (
     X3D_ANALYTIC, X3D_BACKWARD, X3D_MODE, Y_LIMIT, Config, Gains,
 )
 from has_control.core.reference import check_road_memory, reference, reference_array
+from has_control.core.run import TRACE_COLUMNS, TRACE_UNITS, Col, Run
 from has_control.core.scenarios import evaluate_scenarios
 
 
-class Col(IntEnum):
-    """The columns of a trace, in order, by name: ``trace.data[:, Col.e1]``.
-    Units: t [s], x1d and y [m], ydot [m/s], P1 and P2 [Pa], u [m], e1 [m],
-    e2 [m/s], e3 [N], a1_hat [N·s/m], a2_hat [m³/(s·Pa)]."""
-
-    t = 0
-    x1d = 1
-    y = 2
-    ydot = 3
-    P1 = 4
-    P2 = 5
-    u = 6
-    e1 = 7
-    e2 = 8
-    e3 = 9
-    a1_hat = 10
-    a2_hat = 11
-
-
-TRACE_COLUMNS = tuple(c.name for c in Col)
-#: The unit of each column, in ASCII (a CSV header's: ``simulate --trace``).
-TRACE_UNITS = ("s", "m", "m", "m/s", "Pa", "Pa", "m", "m", "m/s", "N", "N*s/m", "m^3/(s*Pa)")
 _NCOL = len(TRACE_COLUMNS)
 
 #: Lanes of one block of the batch kernel: a compile-time constant, so the
@@ -583,15 +561,11 @@ class EpisodeArrays:
 
 
 @dataclass(frozen=True)
-class Trace:
-    """Time series of one episode (rows = samples, columns = TRACE_COLUMNS) and its score."""
+class Trace(Run):
+    """One simulated episode: its :class:`~has_control.core.run.Run` (every column), its score and its gains."""
 
-    data: np.ndarray
     score: Score
     gains: Gains
-
-    def __getitem__(self, column: str) -> np.ndarray:
-        return self.data[:, Col[column]]
 
 
 def simulate(cfg: Config | None = None, gains: Gains | tuple | None = None,

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 from has_control.common.errors import ConfigError
-from has_control.core.jit import INLINE
+from has_control.core.jit import INLINE, KERNEL
 from has_control.core.params import (
     REF_AMPLITUDE, REF_CHIRP, REF_F0, REF_F1, REF_KIND, REF_OFFSET, REF_OMEGA, REF_RISE, REF_ROAD, REF_ROWS,
     REF_SINE, REF_STEP, REF_SWEEP, REF_T0, REF_GRID_STEP, Episode, Reference,
@@ -67,6 +67,18 @@ def reference(rp, t):
         return (off + a * s, a * c * w, a * (-s * w * w + c * dw),
                 a * (-c * w * w * w - 3.0 * s * w * dw))
     return off, 0.0, 0.0, 0.0
+
+
+@njit(**KERNEL)
+def reference_series(rp, t):
+    """The reference over a whole time array: row i is (x1d [m], ẋ1d [m/s],
+    ẍ1d [m/s²], x1d⁽³⁾ [m/s³]) at t[i] [s], :func:`reference`'s bits (one
+    compiled loop instead of a Python call per sample: the bag writer, the bag
+    readers and the node stack all take the reference from here)."""
+    out = np.empty((t.shape[0], 4))
+    for i in range(t.shape[0]):
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = reference(rp, t[i])
+    return out
 
 
 #: The road reference arrays kept between evaluations [bytes]: every

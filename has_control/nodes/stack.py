@@ -30,7 +30,8 @@ from has_control.wire.topics import FLOAT64_ARRAY, MEASURED_RUN_TOPICS, MISSED, 
 from has_control.common.errors import HasControlError
 from has_control.config import build_config, config_parameters
 from has_control.core.episode import Col, EpisodeArrays
-from has_control.core.reference import reference
+from has_control.core.reference import reference_series
+from has_control.core.run import Run
 from has_control.nodes.plant_node import PREFIXES, PlantNode
 from has_control.nodes.recorder import Recorder
 from has_control.nodes.tuner_node import TunerNode
@@ -39,7 +40,7 @@ from has_control.tuning.tuner import load_tuning, tuning_parameters
 
 @dataclass
 class StackRun:
-    trace: np.ndarray          # rows (t, x1d, y, ẏ, P1, P2, u, e1, e2, e3, â1, â2)
+    run: Run                   # what the loop ran: states, commands, reference, the controller's internals
     score: Score
     seconds: float             # wall time, set-up included
     failsafe_events: int
@@ -47,6 +48,11 @@ class StackRun:
     loop: dict = field(default_factory=dict)   # the loop's figures (see :func:`loop_figures`)
     missed_at: list[int] = field(default_factory=list)   # realtime: samples that ran on a held command
     close_seconds: float = 0.0                 # closing the bag after the loop (what is left to write)
+
+    @property
+    def trace(self) -> np.ndarray:
+        """The run's (samples, 12) array (:attr:`Run.data`), as the tests and ``scripts/bench`` read it."""
+        return self.run.data
 
 
 def _overrides(cfg: Config) -> list[Parameter]:
@@ -235,7 +241,7 @@ class _Composed:
                 f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         figures = loop_figures(plant.sample, loop.seconds, cfg.episode.step, plant.failsafe_events, loop.paced)
-        return StackRun(trace, score, seconds, plant.failsafe_events, bag, figures, loop.missed_at, close_seconds)
+        return StackRun(Run(trace), score, seconds, plant.failsafe_events, bag, figures, loop.missed_at, close_seconds)
 
 
 def _bring_up(node) -> None:
@@ -318,7 +324,7 @@ def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndar
     trace = answered[:len(rows)].copy()
     t = rows[:, 0] * cfg.episode.step
     rp = EpisodeArrays.from_config(cfg).reference
-    x1d = np.array([reference(rp, ti)[0] for ti in t])
+    x1d = reference_series(rp, t)[:, 0]
     trace[:, Col.t], trace[:, Col.x1d], trace[:, Col.u] = t, x1d, rows[:, 5]
     trace[:, Col.y:Col.P2 + 1] = rows[:, 1:5]                  # y, ẏ, P1, P2
     trace[:, Col.e1] = x1d - rows[:, 1]                        # SPEC §3: e1 = x1d − x1

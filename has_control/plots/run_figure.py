@@ -34,6 +34,7 @@ from has_control.bag.series import RunSeries
 from has_control.common.errors import HasControlError
 from has_control.core.cost import score_arrays
 from has_control.core.params import Config
+from has_control.core.run import Run
 from has_control.plots.style import BLACK, WIDTH, WINDOW_SHADE, colour, label, save, styled
 
 MM, UM, BAR, A2_UNIT = 1e3, 1e6, 1e-5, 1e12          # m -> mm, m -> µm, Pa -> bar, â2 -> 10⁻¹² m³/(s·Pa)
@@ -48,17 +49,11 @@ RASTER_POINTS = 5000
 
 @dataclass(frozen=True)
 class RunView:
-    """What the run figure draws of one run: series on a time grid [s], SI units."""
+    """What the run figure draws of one run: its :class:`~has_control.core.run.Run`
+    (series on a time grid [s], SI units) and what the figure writes beside it."""
 
     label: str
-    t: np.ndarray
-    x1d: np.ndarray
-    y: np.ndarray
-    u: np.ndarray
-    p1: np.ndarray
-    p2: np.ndarray
-    a1_hat: np.ndarray
-    a2_hat: np.ndarray
+    run: Run
     gains_t: np.ndarray                        # [s] when each gain set took effect
     gains: np.ndarray                          # (m, 3) [1/s]
     window: tuple[float, float] | None         # metric window [s] (SPEC §6)
@@ -71,10 +66,15 @@ class RunView:
     late_t: np.ndarray | None = None           # samples [s] a realtime plant ran without their command (recorded)
     failsafe_t: np.ndarray | None = None       # of those, the samples [s] on the fail-safe (valve centred)
 
-    @property
-    def e1(self) -> np.ndarray:
-        """e1 = x1d − y [m] (SPEC §3)."""
-        return self.x1d - self.y
+    t = property(lambda self: self.run.t)
+    x1d = property(lambda self: self.run.x1d)
+    y = property(lambda self: self.run.y)
+    u = property(lambda self: self.run.u)
+    p1 = property(lambda self: self.run.p1)
+    p2 = property(lambda self: self.run.p2)
+    a1_hat = property(lambda self: self.run.a1_hat)
+    a2_hat = property(lambda self: self.run.a2_hat)
+    e1 = property(lambda self: self.run.e1)
 
 
 def gains_text(k) -> str:
@@ -92,8 +92,7 @@ def view_of_trace(trace, cfg: Config, name: str | None = None) -> RunView:
     """A simulated run (:class:`~has_control.core.episode.Trace`) under ``cfg``: its metrics are its score's."""
     s = trace.score
     g = trace.gains.as_tuple()
-    return RunView(name or gains_text(g), trace["t"], trace["x1d"], trace["y"], trace["u"], trace["P1"],
-                   trace["P2"], trace["a1_hat"], trace["a2_hat"], np.zeros(1), np.array([g]), _window(cfg),
+    return RunView(name or gains_text(g), trace, np.zeros(1), np.array([g]), _window(cfg),
                    None if s.diverged else (s.e_max, s.e_mu, s.e_sigma), "diverged" if s.diverged else "",
                    cfg.plant.valve_limit, cfg.adaptation.lower, cfg.adaptation.upper, np.zeros(0))
 
@@ -106,8 +105,7 @@ def view_of_series(run: RunSeries, name: str | None = None) -> RunView:
     missed = run.missing.get("command", np.zeros(0, np.int64))
     late = None if run.missed is None else run.missed * ep.step
     failsafe = None if run.failsafe is None else run.failsafe * ep.step
-    return RunView(name or run.name, run.t, run.x1d, run.y, run.u, run.p1, run.p2, run.a1_hat, run.a2_hat,
-                   run.gains_t, run.gains, _window(cfg), metrics, note, cfg.plant.valve_limit,
+    return RunView(name or run.name, run, run.gains_t, run.gains, _window(cfg), metrics, note, cfg.plant.valve_limit,
                    cfg.adaptation.lower, cfg.adaptation.upper, missed * ep.step, late, failsafe)
 
 
@@ -136,7 +134,7 @@ def crop(view: RunView, start: float, end: float) -> RunView:
     if not keep.any():
         raise HasControlError(f"--window {start:g} {end:g}: {view.label} has no sample in it "
                               f"(recorded {view.t[0]:g} .. {view.t[-1]:g} s)")
-    cut = {k: getattr(view, k)[keep] for k in ("t", "x1d", "y", "u", "p1", "p2", "a1_hat", "a2_hat")}
+    cut = {"run": Run(view.run.data[keep])}
     for k in ("missed_t", "late_t", "failsafe_t"):
         x = getattr(view, k)
         cut[k] = None if x is None else x[(x >= start) & (x <= end)]
