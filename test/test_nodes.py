@@ -69,14 +69,14 @@ def test_plant_fail_safe_centres_the_valve_and_recovers(context):
     ex = EventsExecutor(context=context)
     plant = PlantNode(context=context, parameter_overrides=[Parameter("command_timeout", value=0.02)])
     ex.add_node(plant)
-    plant.log = []
+    plant.process.log = []
     plant.start()
     end = time.monotonic() + 1.0
     while time.monotonic() < end:
         ex.spin_once(timeout_sec=0.01)
     stalled = plant.failsafe_events
     assert stalled >= 5 and plant.sample == stalled
-    assert all(row[-1] == 0.0 for row in plant.log)       # u = 0 while no controller
+    assert all(row[-1] == 0.0 for row in plant.process.log)       # u = 0 while no controller
     controller = ControllerNode(context=context)             # the controller comes back
     ex.add_node(controller)
     before = plant.sample
@@ -84,7 +84,7 @@ def test_plant_fail_safe_centres_the_valve_and_recovers(context):
     while time.monotonic() < end and plant.sample < before + 200:
         ex.spin_once(timeout_sec=0.01)
     assert plant.sample >= before + 200 and not plant._in_outage
-    assert any(row[-1] != 0.0 for row in plant.log[before:])
+    assert any(row[-1] != 0.0 for row in plant.process.log[before:])
     ex.shutdown()
     plant.destroy_node()
     controller.destroy_node()
@@ -130,7 +130,7 @@ def test_killing_the_controller_mid_run_trips_the_fail_safe_and_a_restart_resume
     cmd = [sys.executable, "-m", "has_control.cli", "controller", "--ros-args", "-p", "publish_internals:=false"]
     ex = EventsExecutor(context=context)
     plant = PlantNode(context=context, parameter_overrides=[Parameter("command_timeout", value=0.05)])
-    plant.log = []
+    plant.process.log = []
     ex.add_node(plant)
     first = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     second = None
@@ -143,12 +143,12 @@ def test_killing_the_controller_mid_run_trips_the_fail_safe_and_a_restart_resume
         killed_at = plant.sample
         assert _spin_until(ex, lambda: plant.failsafe_events >= 10, 10)
         assert plant._in_outage and plant.sample > killed_at            # the run continues
-        outage = [row[-1] for row in plant.log[killed_at + 2:]]
+        outage = [row[-1] for row in plant.process.log[killed_at + 2:]]
         assert outage and all(u == 0.0 for u in outage)                  # valve centred
         second = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         back = plant.sample
         assert _spin_until(ex, lambda: plant.sample >= back + 500 and not plant._in_outage, 60)
-        resumed = [row[-1] for row in plant.log[-100:]]
+        resumed = [row[-1] for row in plant.process.log[-100:]]
         assert all(u != 0.0 for u in resumed)                            # under control again
         assert abs(plant.x[0]) < 0.2                                     # and still sane
     finally:
@@ -179,7 +179,7 @@ def _realtime_run(context, failsafe_samples: int):
     driver.create_subscription(DiagnosticArray, "/diagnostics", reports.append, 10)
     for n in (plant, driver):
         ex.add_node(n)
-    plant.log = []
+    plant.process.log = []
     assert _spin_until(ex, plant.connected, 10)
     pub.publish(JointState(name=["valve"], position=[1e-5]))      # stamped sample 0, before the start
     assert _spin_until(ex, lambda: plant.command_sample == 0, 10)
@@ -187,7 +187,7 @@ def _realtime_run(context, failsafe_samples: int):
     plant.run_realtime(ex)                                       # paced on this thread, which owns ex
     assert plant.finished
     _spin_until(ex, lambda: False, 0.2)
-    u = np.array([row[-1] for row in plant.log])
+    u = np.array([row[-1] for row in plant.process.log])
     stats, events = plant.realtime_stats, plant.failsafe_events
     ex.shutdown()
     for n in (plant, driver):
@@ -267,7 +267,7 @@ def test_killing_the_controller_mid_run_in_realtime_mode(context, domain_id):
     samples = int(12.0 / 0.0003)                         # room for a restart slowed by the loaded machine
     plant = PlantNode(context=context, parameter_overrides=[
         Parameter("mode", value="realtime"), Parameter("samples", value=samples)])
-    plant.log = []
+    plant.process.log = []
     ex.add_node(plant)
     procs = [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     marks = {}
@@ -293,7 +293,7 @@ def test_killing_the_controller_mid_run_in_realtime_mode(context, domain_id):
                 p.wait()
         ex.shutdown()
         plant.destroy_node()
-    u = np.array([row[-1] for row in plant.log])
+    u = np.array([row[-1] for row in plant.process.log])
     killed, restarted = marks["killed"], marks["restarted"]
     assert stats.samples == samples and stats.failsafe > 0
     outage = u[killed + plant.failsafe_samples + 20:restarted]

@@ -17,7 +17,8 @@ from has_control.core.episode import simulate
 from has_control.core.params import Config
 from has_control.core.scenarios import Aggregate, ScenarioScores
 from has_control.loop.schedule import LoopStats, _extend
-from has_control.nodes.stack import missed_messages, run_stack
+from has_control.loop.plant import missed_message
+from has_control.nodes.stack import run_stack
 from has_control.plots.figures import draw_convergence_spread, draw_robustness
 from has_control.plots.run_figure import draw, view_of_series, view_of_trace
 from has_control.tuning.robustness import RobustnessTable, scenario_kind
@@ -165,7 +166,9 @@ def test_missed_and_fail_safe_samples_recorded_by_a_realtime_stack_are_marked(re
     _extend(stats.failsafe_spans, 7)
     assert stats.missed_spans == [[5, 7], [20, 20]] and stats.failsafe_spans == [[7, 7]]
     log = [(i, 0.0, 0.0, 0.0, 0.0, i * 1e-6) for i in range(30)]  # (sample, y, ẏ, P1, P2, u it ran with)
-    msgs = missed_messages(stats, log, cfg.episode.step)
+    failsafe = {i for a, b in stats.failsafe_spans for i in range(a, b + 1)}
+    msgs = [missed_message(i, cfg.episode.step, log[i][-1], i in failsafe)      # as the plant reports them
+            for a, b in stats.missed_spans for i in range(a, b + 1)]
     rows = cdr.float64_arrays(msgs)
     np.testing.assert_allclose(rows, [[5 * 3e-4, 5e-6, 0], [6 * 3e-4, 6e-6, 0], [7 * 3e-4, 7e-6, 1],
                                       [20 * 3e-4, 2e-5, 0]], rtol=1e-15)

@@ -74,7 +74,7 @@ def test_plant_and_controller_in_two_processes_give_the_library_run_and_a_record
     plant = PlantNode(context=context, parameter_overrides=[
         Parameter("interface", value=interface), Parameter("samples", value=n),
         Parameter("command_timeout", value=5.0), Parameter("startup_timeout", value=60.0)])
-    plant.log = []
+    plant.process.log = []
     ex.add_node(plant)
     try:
         assert recorder.stdout.readline().strip() == "ready", recorder.stderr.read()
@@ -84,7 +84,7 @@ def test_plant_and_controller_in_two_processes_give_the_library_run_and_a_record
         assert plant.finished and plant.sample == n
         assert plant.failsafe_events == 0 and plant.conflicts == 0 and plant.malformed_commands == 0
         ref = simulate(cfg)
-        log = np.array(plant.log)                           # sample, y, ydot, P1, P2, u
+        log = np.array(plant.process.log)                           # sample, y, ydot, P1, P2, u
         np.testing.assert_array_equal(log[:, 0], np.arange(n))
         for k, col in enumerate((Col.y, Col.ydot, Col.P1, Col.P2, Col.u), start=1):
             np.testing.assert_array_equal(log[:, k], ref.data[:, col])     # the library's run, bit for bit

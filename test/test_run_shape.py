@@ -7,6 +7,7 @@ import pytest
 from has_control.config import build_config
 from has_control.core.episode import EpisodeArrays
 from has_control.core.reference import reference, reference_series
+from has_control.wire.topics import COMMAND_LAYOUT, MISSED_LAYOUT
 
 
 @pytest.mark.parametrize("kind", ["sine", "step", "chirp", "road", "zero"])
@@ -69,3 +70,141 @@ def test_the_run_figure_draws_the_run_it_is_given(tmp_path):
     cut = crop(view, 0.2, 0.4)
     keep = (trace.t >= 0.2) & (trace.t <= 0.4)
     assert np.array_equal(cut.run.data, trace.data[keep]) and 0 < len(cut.run) < len(trace)
+
+
+class _Link:
+    """Plant and controller processes in one queue, without ROS, keeping what
+    each publishes as a recorder's tap would: states, commands, internals."""
+
+    def __init__(self, drop=lambda i: False):
+        from collections import deque
+        self.queue, self.drop = deque(), drop
+        self.taken = {"state": [], "command": [], "internals": [], "missed": []}
+
+    def publish(self, state, true_state, clock) -> bool:
+        self.taken["state"].append(state)
+        self.queue.append(("state", state))
+        return True
+
+    def resend(self, state) -> None:
+        self.queue.append(("state", state))
+
+    def connected(self) -> bool:
+        return True
+
+    def command(self, data: bytes) -> None:
+        from has_control.wire.codec import get_stamp
+        self.taken["command"].append(data)
+        if not self.drop(int(get_stamp(data)) // 300_000):
+            self.queue.append(("command", data))
+
+    def spin_once(self, timeout_sec: float = 0.0) -> None:
+        if self.queue:
+            kind, data = self.queue.popleft()
+            (self.port.on_state if kind == "state" else self.plant.on_command)(data)
+
+
+def _loop(cfg, schedule, samples, drop=lambda i: False):
+    from has_control.loop.controller import ControllerProcess
+    from has_control.loop.guards import Conflicts
+    from has_control.loop.log import ListLog
+    from has_control.loop.plant import PlantProcess
+    from has_control.loop.ports import HasControlPort, Outputs
+    from has_control.loop.schedule import run_loop
+    link, log = _Link(drop), ListLog()
+    plant = PlantProcess(cfg, schedule, link, log, samples=samples)
+    plant.log, plant.on_unanswered = [], link.taken["missed"].append
+    controller = ControllerProcess(cfg, log)
+    out = Outputs(link.command, link.command, link.taken["internals"].append, lambda b: None, lambda b: None)
+    link.plant, link.port = plant, HasControlPort(controller, out, Conflicts(log))
+    plant.start()
+    stats = run_loop(plant, link.spin_once, plant.schedule)
+    return link, plant, stats
+
+
+def _run(link, cfg):
+    from has_control.wire.run_messages import run_of_messages
+    t = link.taken
+    return run_of_messages(t["state"], t["command"], t["internals"], t["missed"], cfg.episode.step,
+                           cfg.episode.step_ns, EpisodeArrays.from_config(cfg).reference)
+
+
+def test_the_run_a_recorder_takes_from_the_loops_messages_is_the_library_run():
+    """Lock-step: the states, commands and controller states the loop
+    exchanged make the run :func:`simulate` gives, bit for bit (the node
+    stack's run and score come from these messages)."""
+    from has_control.config import with_horizon
+    from has_control.core.cost import score_arrays
+    from has_control.core.episode import simulate
+    from has_control.core.params import Config
+    from has_control.loop.schedule import LockStep
+    cfg = with_horizon(Config(), 1.5)
+    n = cfg.episode.samples
+    link, plant, _ = _loop(cfg, LockStep(timeout=60.0, startup_timeout=60.0), n)
+    run, ref = _run(link, cfg), simulate(cfg)
+    assert plant.finished and len(run) == n and not link.taken["missed"]
+    assert np.array_equal(run.data, ref.data)
+    assert score_arrays(run.e1, run.u, cfg.episode.as_array()) == ref.score
+
+
+def test_a_paced_runs_held_and_centred_samples_are_in_its_run():
+    """Paced with commands lost: the plant reports each sample it ran without
+    its answer (held, then centred), and the run has the command it ran with
+    there (not the controller's late answer) and the states it went through."""
+    from has_control.config import with_horizon
+    from has_control.core.params import Config
+    from has_control.core.run import Col
+    from has_control.loop.schedule import Paced
+    cfg, n, lost = with_horizon(Config(), 1.5), 300, range(100, 150)
+    link, plant, stats = _loop(cfg, Paced(failsafe_samples=10), n, drop=lambda i: i in lost)
+    run = _run(link, cfg)
+    ran = np.array(plant.log)                       # (sample, y, ẏ, P1, P2, u): what the plant itself ran
+    assert len(run) == n == len(ran) and stats.missed >= len(lost)
+    assert np.array_equal(run.u, ran[:, 5]) and np.array_equal(run.data[:, Col.y:Col.P2 + 1], ran[:, 1:5])
+    assert np.any(run.u[100:110] != 0.0) and np.all(run.u[111:150] == 0.0)      # held, then the valve centred
+    missed = np.array([MISSED_LAYOUT.read(m) for m in link.taken["missed"]])
+    at = np.rint(missed[:, 0] / cfg.episode.step).astype(int)
+    assert set(lost) <= set(at) and set(at[missed[:, 2] == 1.0]) == set(range(110, 150))
+    sent = np.array([COMMAND_LAYOUT.read(c)[0] for c in link.taken["command"]])
+    assert np.isfinite(run.a1_hat).all() and np.all(sent[111:150] != 0.0)   # answered, but lost on the way
+
+
+def test_the_loops_reports_without_ros():
+    """Lock-step: the rate since the last report, well unless in an outage;
+    paced: the loop's figures with the plant's counts, well at a real-time
+    factor of 0.99 without fail-safe samples."""
+    from types import SimpleNamespace
+    from has_control.loop.report import LoopReports
+    from has_control.loop.schedule import LoopStats
+    now = [10.0]
+    process = SimpleNamespace(sample=0, fail_safe=SimpleNamespace(in_outage=False),
+                              figures=lambda: {"failsafe_samples": 2.0, "malformed_commands": 0.0, "conflicts": 0.0})
+    reports = LoopReports(process, clock=lambda: now[0])
+    process.sample, now[0] = 5000, 10.5
+    r = reports.lockstep()
+    assert r.values["rate_hz"] == 10_000.0 and r.ok and r.message == "rate_hz 10000, failsafe_samples 2"
+    process.fail_safe.in_outage, now[0] = True, 11.5
+    assert not reports.lockstep().ok
+    stats = LoopStats(300_000, samples=3334, sim_ns=3333 * 300_000, wall_ns=1_000_000_000)
+    p = reports.paced(stats)
+    assert p.ok and p.values["failsafe_events"] == 2.0 and reports.realtime_stats is p.values
+    stats.failsafe = 1
+    assert not reports.paced(stats).ok
+
+
+def test_messages_of_another_layout_are_refused_not_misread():
+    """A recorder's chunks of joined messages read as the messages; a message
+    of another layout (here a command among the states) is refused, naming the topic."""
+    from has_control.config import with_horizon
+    from has_control.core.params import Config
+    from has_control.loop.schedule import LockStep
+    from has_control.wire.run_messages import run_of_messages
+    cfg = with_horizon(Config(), 1.5)
+    link, _, _ = _loop(cfg, LockStep(timeout=60.0, startup_timeout=60.0), 200)
+    t, ep, rp = link.taken, cfg.episode, EpisodeArrays.from_config(cfg).reference
+    whole = _run(link, cfg)
+    chunked = run_of_messages([b"".join(t["state"][:64]), *t["state"][64:]], [b"".join(t["command"])],
+                              t["internals"], [], ep.step, ep.step_ns, rp)
+    assert len(whole) == 200 and np.array_equal(chunked.data, whole.data)
+    with pytest.raises(ValueError, match="state: a message of another layout"):
+        run_of_messages(t["state"][:10] + t["command"][:1], t["command"], t["internals"], [], ep.step, ep.step_ns, rp)

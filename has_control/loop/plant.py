@@ -45,7 +45,13 @@ from typing import Callable
 from has_control.loop.guards import AnswerLedger, Conflicts, FailSafe
 from has_control.wire import steps
 from has_control.wire.codec import NOT_FINITE
-from has_control.wire.topics import CLOCK_LAYOUT, FORWARD_COMMAND_LAYOUT, STATE_LAYOUT
+from has_control.wire.topics import CLOCK_LAYOUT, FORWARD_COMMAND_LAYOUT, MISSED_LAYOUT, STATE_LAYOUT
+
+
+def missed_message(sample: int, step: float, u: float, failsafe: bool) -> bytes:
+    """The ``plant/missed`` message of a sample run without its answer: t [s]
+    (``sample`` · Δt ``step``), the command it ran with u [m], 1.0 if on the fail-safe."""
+    return MISSED_LAYOUT.encode((sample * step, u, 1.0 if failsafe else 0.0))
 
 
 class PlantProcess:
@@ -74,7 +80,11 @@ class PlantProcess:
         self.answers = AnswerLedger()
         self.malformed_commands = self.late_commands = self.dropped_states = 0
         self.publish_failures = 0                 # states the transport refused to send
-        self.log: list[tuple[int, float, float, float, float, float]] | None = None   # (sample, y, ẏ, P1, P2, u)
+        #: A record of every step, (sample, y, ẏ, P1, P2, u it ran with), when set to a list (None: off).
+        self.log: list[tuple[int, float, float, float, float, float]] | None = None
+        #: An observer of the samples run without their answer: takes each as a ``plant/missed``
+        #: message (:data:`~has_control.wire.topics.MISSED_COLUMNS`; None: not reported).
+        self.on_unanswered: Callable[[bytes], None] | None = None
         self.started_at = self.run_seconds = 0.0
         self.reset()
 
@@ -87,6 +97,7 @@ class PlantProcess:
         self.sample = self.first_sample = 0
         self.finished = self.diverged = False
         self.command_sample, self.command_u = -1, 0.0
+        self._centred_at = -1                     # the sample the fail-safe last centred the valve for
         self.answers.reset()
         steps.encode_state(self.x, self.ap, 0, self.step_ns, self.state_msg, self.clock_msg, self._scratch)
         self._measure()
@@ -157,6 +168,8 @@ class PlantProcess:
         episode ends (the diverged state is then published, for the record)."""
         if self.log is not None:
             self.log.append((self.sample, *map(float, self.x[:4]), u))
+        if not answered and self.on_unanswered is not None:
+            self.on_unanswered(missed_message(self.sample, self.step_s, u, self._centred_at == self.sample))
         self.answers.ran(self.sample, u, answered)
         self.sample += 1
         bad = steps.plant_sample(self.x, u, self.ap, self.step_s, self.y_limit, self.sample, self.step_ns,
@@ -176,6 +189,7 @@ class PlantProcess:
     def failsafe(self, missing: int) -> None:
         """The valve is centred for this sample (``missing`` commands in a row)."""
         self.fail_safe.centre(missing, self.sample)
+        self._centred_at = self.sample
 
     def commands_back(self) -> None:
         self.fail_safe.back(self.sample)

@@ -93,7 +93,8 @@ from std_msgs.msg import Float64MultiArray
 from has_control.common.errors import ConfigError
 from has_control.config.table import Param, refusal, table
 from has_control.loop.plant import PlantProcess
-from has_control.loop.schedule import MODES, LoopStats, paced_summary, run_loop, schedule_of
+from has_control.loop.report import LoopReports, Report, run_reported
+from has_control.loop.schedule import MODES, LoopStats, schedule_of
 from has_control.wire import steps
 from has_control.wire.topics import CLOCK_TOPIC, COMMAND, COMMAND_NAMES, STATE, TRUE_STATE
 from has_control.nodes.live_tap import node_tap
@@ -170,16 +171,18 @@ def _other_forward(data: bytes) -> tuple[int, float] | None:
         return None
 
 
+#: The plant's figures and settings as node attributes: where each lives in the process.
+PROCESS_ATTRIBUTES = {
+    **{n: n for n in ("x", "sample", "finished", "diverged", "command_sample", "command_u", "samples",
+                      "malformed_commands", "publish_failures", "actuator", "ap", "step_s", "step_ns", "run_seconds")},
+    "failsafe_events": "fail_safe.samples", "_in_outage": "fail_safe.in_outage", "conflicts": "conflicts.count",
+    "stop_on_conflict": "conflicts.stop", "timeout": "schedule.timeout",
+    "startup_timeout": "schedule.startup_timeout", "failsafe_samples": "schedule.failsafe_samples"}
+
+
 class PlantNode(LifecycleNode):
-    x, sample, finished, diverged, log = (_Of(n) for n in ("x", "sample", "finished", "diverged", "log"))
-    command_sample, command_u, samples = _Of("command_sample"), _Of("command_u"), _Of("samples")
-    malformed_commands, publish_failures = _Of("malformed_commands"), _Of("publish_failures")
-    actuator, ap, step_s, step_ns, run_seconds = (_Of(n) for n in ("actuator", "ap", "step_s", "step_ns",
-                                                                   "run_seconds"))
-    failsafe_events, _in_outage = _Of("fail_safe.samples"), _Of("fail_safe.in_outage")
-    conflicts, stop_on_conflict = _Of("conflicts.count"), _Of("conflicts.stop")
-    timeout, startup_timeout = _Of("schedule.timeout"), _Of("schedule.startup_timeout")
-    failsafe_samples = _Of("schedule.failsafe_samples")
+    """The plant as a managed node: its parameters, topics and reports over a
+    :class:`~has_control.loop.plant.PlantProcess` (see the module docstring)."""
 
     def __init__(self, name: str = "plant", tap=None, **kwargs):
         """``tap(topic)``: a function taking every state and clock message published (an in-process observer)."""
@@ -192,7 +195,6 @@ class PlantNode(LifecycleNode):
         self.active = self.configured = False
         self.process: PlantProcess | None = None
         self._entities: list = []
-        self.realtime_stats: dict[str, float] = {}
         self.run_requested = False                # start() asks the executor's owner to run the loop
         self._tap, self.live_view = node_tap(self, tap)      # parameter foxglove_port
         trigger_service(self, "~/reset", self._reset_state, "plant at the initial state, sample 0, idle")
@@ -204,13 +206,8 @@ class PlantNode(LifecycleNode):
     # --- lifecycle -----------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Validate the parameters, build the plant's tables, create the topics."""
-        value = {name: self.get_parameter(name).value for name in OWN_PARAMETERS}
         try:
-            for name in OWN_PARAMETERS:
-                reason = refusal(OWN_PARAMETERS, name, value[name])
-                if reason is not None:
-                    raise ValueError(f"parameter {reason}")
-            cfg = config_from_node(self, PREFIXES)
+            value, cfg = _own_values(self), config_from_node(self, PREFIXES)
         except (ConfigError, ValueError) as exc:
             return refuse(self, exc)
         self.mode, self.priority = value["mode"], int(value["realtime_priority"])
@@ -242,9 +239,8 @@ class PlantNode(LifecycleNode):
         self._command_topic = self._command_sub.topic_name
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.configured = True
-        timers = []
+        timers, self.reports = [], LoopReports(self.process)
         if not schedule.paced:                   # the watchdog and the once-a-second report
-            self._last_report = (time.monotonic(), 0)
             timers = [self.create_timer(max(schedule.timeout / 4, 0.01), self._check_deadline),
                       self.create_timer(1.0, self._report_lockstep)]
         self._entities = [self._command_sub, timers, *pubs, self.diagnostics_pub]
@@ -353,50 +349,36 @@ class PlantNode(LifecycleNode):
 
     # --- the loop and its reports ------------------------------------------------
     def run(self, executor, on_second=None, check=None) -> LoopStats:
-        """Run the requested episode on this thread, which must own ``executor``
-        (:func:`~has_control.loop.schedule.run_loop`; realtime: paced, SCHED_FIFO where permitted)."""
+        """Run the requested episode on this thread, which must own ``executor``, with its
+        reports (:func:`~has_control.loop.report.run_reported`; realtime: paced, SCHED_FIFO where permitted)."""
         self.run_requested = False
-        process = self.process
-        if not process.published:
-            process.started_at = time.perf_counter()
-
-        def each_second(stats: LoopStats) -> None:
-            if process.schedule.paced:
-                self._report_realtime(stats)
-            if on_second is not None:
-                on_second(stats)
-        paced = process.schedule.paced
-        stats = run_loop(process, executor.spin_once, process.schedule, priority=self.priority if paced else 0,
-                         on_second=each_second, check=check)
-        if paced:
-            self._report_realtime(stats)
-            self.get_logger().info(paced_summary(self.realtime_stats))
-        else:
-            self._report_lockstep()               # the episode's last report: a run shorter than a second has one
-        return stats
+        return run_reported(self.process, executor.spin_once, self.reports, self._publish_report,
+                            priority=self.priority, on_second=on_second, check=check)
 
     run_realtime = run
 
+    realtime_stats = property(lambda self: self.reports.realtime_stats)
+
     def _report_lockstep(self) -> None:
-        now, done = time.monotonic(), self.sample
-        then, before = self._last_report
-        self._last_report = (now, done)
-        self._diagnose({"rate_hz": (done - before) / (now - then), "samples": float(done),
-                        **self.process.figures()}, "lock-step loop")
+        self._publish_report(self.reports.lockstep())
 
-    def _report_realtime(self, stats: LoopStats) -> None:
-        st = stats.as_dict()
-        figures = self.process.figures()
-        st["failsafe_events"] = figures.pop("failsafe_samples")
-        st.update(figures)
-        self.realtime_stats = st
-        self._diagnose(st, "realtime loop", ok=st["realtime_factor"] >= 0.99 and not stats.failsafe)
+    def _publish_report(self, report: Report) -> None:
+        publish_diagnostics(self, self.diagnostics_pub, report.what, "has_control plant", report.values, report.ok,
+                            report.message)
 
-    def _diagnose(self, values: dict[str, float], what: str, ok: bool | None = None) -> None:
-        message = ", ".join(f"{k} {v:.6g}" for k, v in values.items() if k in
-                            ("rate_hz", "realtime_factor", "missed_samples", "failsafe_samples", "late_p99_us"))
-        publish_diagnostics(self, self.diagnostics_pub, what, "has_control plant", values,
-                            not self._in_outage if ok is None else ok, message)
+
+for _name, _path in PROCESS_ATTRIBUTES.items():
+    setattr(PlantNode, _name, _Of(_path))
+
+
+def _own_values(node: PlantNode) -> dict:
+    """The plant's own parameters by name; ValueError naming the first out of range."""
+    value = {name: node.get_parameter(name).value for name in OWN_PARAMETERS}
+    for name in OWN_PARAMETERS:
+        reason = refusal(OWN_PARAMETERS, name, value[name])
+        if reason is not None:
+            raise ValueError(f"parameter {reason}")
+    return value
 
 
 def main(args=None):

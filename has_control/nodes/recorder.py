@@ -66,10 +66,12 @@ class Recorder:
     """Records the run topics of ``namespace``; subscribes on ``node`` unless ``subscribe`` is False."""
 
     def __init__(self, node=None, namespace: str = "", topics: dict[str, str] | None = None,
-                 y_limit: float = math.inf, subscribe: bool = True, process: bool = False):
+                 y_limit: float = math.inf, subscribe: bool = True, process: bool = False, keep=()):
         """``process``: a bag this recorder opens is written by a process of its
         own (:class:`~has_control.bag.process.BagProcess`), so that writing
-        takes no GIL from a busy loop; else by a thread."""
+        takes no GIL from a busy loop; else by a thread. ``keep``: topics
+        (relative names, among ``topics``) whose messages are also kept, bag or
+        no bag, for :meth:`taken`."""
         self.namespace = namespace
         self.topics = {topic_name(namespace, rel): (rel, ty) for rel, ty in (topics or RUN_TOPICS).items()}
         self._state = topic_name(namespace, STATE)
@@ -79,6 +81,7 @@ class Recorder:
         self.prefix = ""
         self.written: dict[str, int] = {t: 0 for t in self.topics}
         self.pending: dict[str, list[bytes]] = {t: [] for t in self.topics}
+        self.kept: dict[str, list[bytes]] = {topic_name(namespace, rel): [] for rel in keep}
         self.samples_wanted = 0
         self.done = threading.Event()
         self.diverged = False
@@ -115,7 +118,10 @@ class Recorder:
     def sink(self, topic: str):
         """The in-process tap for ``topic`` (its full name): a function that takes
         each message as published, on the publishing thread, with no lock (the
-        tap and the hand-over to the writer run on that one thread)."""
+        tap and the hand-over to the writer run on that one thread); a topic
+        not recorded is ignored."""
+        if topic not in self.pending:
+            return _ignore
         pending = self.pending[topic]
         if topic != self._state:
             return pending.append
@@ -127,14 +133,21 @@ class Recorder:
         return take
 
     def _hand_over(self) -> None:
-        """Give what is pending to the writer (process or thread)."""
+        """Give what is pending to the writer (process or thread); what is kept,
+        joined into one chunk per topic (no object per message)."""
         if self.writer is None:
+            for t, chunks in self.kept.items():
+                if self.pending[t]:
+                    chunks.append(b"".join(self.pending[t]))
+                    self.pending[t].clear()
             return
         batch = {}
         for t, m in self.pending.items():
             if m:
                 batch[t] = m[:]
                 self.written[t] += len(m)
+                if t in self.kept:
+                    self.kept[t].append(b"".join(m))
                 m.clear()
         if not batch:
             return
@@ -157,7 +170,7 @@ class Recorder:
         with self._lock:
             self.writer, self.prefix = w, prefix
             self.written = {t: 0 for t in self.topics}
-            for m in self.pending.values():
+            for m in (*self.pending.values(), *self.kept.values()):
                 m.clear()
             self.samples_wanted = samples
             self.diverged = False
@@ -178,6 +191,12 @@ class Recorder:
         else:
             self._writes.append(self._pool.submit(self.writer.write_batches, {topic: as_batch(msgtype, messages)}))
 
+    def taken(self, relative: str) -> list[bytes]:
+        """Every message of ``relative`` taken since :meth:`open` (a topic named in
+        ``keep``), in order, as messages and chunks of joined messages."""
+        t = topic_name(self.namespace, relative)
+        return self.kept.get(t, []) + self.pending.get(t, [])
+
     def count(self, relative: str) -> int:
         """Messages of ``relative`` taken since :meth:`open`."""
         t = topic_name(self.namespace, relative)
@@ -197,6 +216,10 @@ class Recorder:
         """Stop taking messages and close the bag."""
         w = self.detach()
         return w.close() if w is not None else None
+
+
+def _ignore(data: bytes) -> None:
+    """The tap of a topic not recorded."""
 
 
 def _write(writer: BagWriter, batch: dict[str, list[bytes]], topics: dict, prefix: str) -> None:

@@ -24,16 +24,15 @@ from has_control.core.params import Config
 from has_control.nodes.controller_node import ControllerNode
 from has_control.nodes.managed import bring_up
 from has_control.nodes.runtime import borrowed_context, normalise_namespace, tap_diagnostics, tee
-from has_control.wire import cdr
-from has_control.wire.codec import column_label
-from has_control.wire.topics import FLOAT64_ARRAY, MEASURED_RUN_TOPICS, MISSED, MISSED_COLUMNS
+from has_control.wire.run_messages import run_of_messages
+from has_control.wire.topics import (COMMAND, CONTROLLER_STATE, FLOAT64_ARRAY, JOINT_STATE, MEASURED_RUN_TOPICS,
+                                     MISSED, RUN_TOPICS, STATE, TRUE_STATE)
 from has_control.common.errors import HasControlError
 from has_control.config import build_config, config_parameters
 from has_control.core.episode import Col, EpisodeArrays
-from has_control.core.reference import reference_series
 from has_control.core.run import Run
 from has_control.nodes.plant_node import PREFIXES, PlantNode
-from has_control.nodes.recorder import Recorder
+from has_control.nodes.recorder import Recorder, topic_name
 from has_control.nodes.tuner_node import TunerNode
 from has_control.tuning.tuner import load_tuning, tuning_parameters
 
@@ -78,7 +77,7 @@ def loop_figures(samples: int, seconds: float, step: float, failsafe: int, paced
 
 
 def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
-              publish_internals: bool = False, args: list[str] | None = None,
+              args: list[str] | None = None,
               context: rclpy.Context | None = None, timeout: float = 600.0,
               domain_id: int | None = None, record: str | Path | None = None,
               realtime: bool = False, priority: int = 50,
@@ -89,9 +88,10 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
     process (the ros2_control layout), lock-step or, with ``realtime``, paced
     to wall time (SCHED_FIFO at ``priority`` where permitted).
 
-    ``record``: also record the run to a rosbag2 MCAP bag at this path, from
-    the bytes the nodes publish (the controller then publishes its internals,
-    which the bag needs for scoring). ``progress(samples done, samples,
+    The run and its score are what the recorder took from the bytes the nodes
+    publish (:func:`~has_control.wire.run_messages.run_of_messages`; the
+    controller publishes its internals). ``record``: also write them to a
+    rosbag2 MCAP bag at this path. ``progress(samples done, samples,
     samples/s)`` is called about once a second. ``foxglove``: also serve the
     run's topics live on a Foxglove WebSocket at this port of 127.0.0.1 for the
     run, from a viewer process (:class:`~has_control.nodes.live_process.LiveViewProcess`:
@@ -112,7 +112,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         stack = _Composed(namespace=namespace)
         interrupted: list = []
         try:
-            stack.compose(cfg, context, record, live, realtime, priority, publish_internals)
+            stack.compose(cfg, context, record, live, realtime, priority)
             if live is not None and foxglove_wait > 0:
                 if announce is not None:
                     announce(f"waiting up to {foxglove_wait:g} s for a Foxglove client")
@@ -149,32 +149,33 @@ class _Composed:
     nodes: list = field(default_factory=list)
     measured: bool = False
 
-    def compose(self, cfg: Config, context, record, live, realtime: bool, priority: int,
-                publish_internals: bool) -> None:
+    def compose(self, cfg: Config, context, record, live, realtime: bool, priority: int) -> None:
         """The recorder, both nodes (brought up: unconfigured -> inactive -> active)
         and the executor, matched to each other."""
         params, n = _overrides(cfg), cfg.episode.samples
         self.measured = cfg.noise.added_by == "plant"   # the controller reads readings: the truth is the plant's
+        run = _run_topics(self.measured, realtime)
         if record is not None:
-            self.recorder = Recorder(namespace=self.namespace, subscribe=False, process=True,
-                                     topics=MEASURED_RUN_TOPICS if self.measured else None)
+            topics = {**(MEASURED_RUN_TOPICS if self.measured else RUN_TOPICS), **run}
+            self.recorder = Recorder(namespace=self.namespace, subscribe=False, process=True, topics=topics,
+                                     keep=run)
             self.recorder.open(record, cfg)
-        tap = tee(self.recorder and self.recorder.sink, live and live.sink)
+        else:                                    # no bag: what the run needs, kept in memory
+            self.recorder = Recorder(namespace=self.namespace, subscribe=False, topics=run, keep=run)
+        tap = tee(self.recorder.sink, live and live.sink)
         managed = Parameter("autostart", value=False)           # the transitions are driven here
         self.plant = PlantNode(namespace=self.namespace, context=context, tap=tap, parameter_overrides=(
             _plant_parameters(params) + [Parameter("samples", value=n), Parameter("realtime_priority", value=priority),
                                          Parameter("mode", value="realtime" if realtime else "lockstep"), managed]))
         self.nodes.append(self.plant)
-        internals = publish_internals or record is not None
         self.controller = ControllerNode(namespace=self.namespace, context=context, tap=tap, parameter_overrides=(
-            params + [Parameter("publish_internals", value=internals), managed]))
+            params + [Parameter("publish_internals", value=True), managed]))
         self.nodes.append(self.controller)
         for node in (self.plant, self.controller):
             tap_diagnostics(node, live and live.sink)   # the live view serves /diagnostics too
             _bring_up(node)
-        self.controller.record_trace(n)
-        if realtime or self.measured:
-            self.plant.log = []                 # the true state and the command each sample ran with
+        if realtime:                             # what the plant ran without its answer, to the recorder
+            self.plant.process.on_unanswered = self.recorder.sink(topic_name(self.namespace, MISSED))
         self.executor = EventsExecutor(context=context)
         for node in self.nodes:
             self.executor.add_node(node)
@@ -201,8 +202,6 @@ class _Composed:
                     if progress is not None:
                         progress(st.samples, n, st.samples / max(st.wall_ns / 1e9, 1e-9))
                 stats = plant.run(self.executor, on_second=each_second)
-                if self.recorder is not None:
-                    self.recorder.add(MISSED, FLOAT64_ARRAY, missed_messages(stats, plant.log, cfg.episode.step))
                 return _Loop(stats.as_dict(), stats.missed_at, time.perf_counter() - started)
             plant.run(self.executor, on_second=_lockstep_progress(progress, n),
                       check=_lockstep_check(plant, timeout, stop_if_conflicts))
@@ -214,7 +213,7 @@ class _Composed:
     def close(self) -> tuple[Path | None, float]:
         """Close the bag (its time [s] measured) and destroy the nodes."""
         closing = time.perf_counter()
-        bag = self.recorder.close() if self.recorder is not None else None
+        bag = self.recorder.close() if self.recorder is not None and self.recorder.writer is not None else None
         close_seconds = time.perf_counter() - closing
         if self.executor is not None:
             self.executor.shutdown()
@@ -223,17 +222,12 @@ class _Composed:
         return bag, close_seconds
 
     def result(self, cfg: Config, loop: _Loop, bag, close_seconds: float, seconds: float) -> StackRun:
-        """The run's trace (the controller's, or the plant's true states where the
-        plant logged them) and score; a run with a stranger in it is refused."""
+        """The run the recorder took (:func:`run_of`) and its score; a run with a stranger in it is refused."""
         plant, controller, n = self.plant, self.controller, cfg.episode.samples
-        if plant.log is not None:                # realtime or measured: the plant logged its true states
-            trace = _plant_trace(plant.log, controller.trace, cfg)
-            diverged = plant.diverged or len(trace) < n
-        else:
-            answered = int(np.count_nonzero(~np.isnan(controller.trace[:, Col.t])))
-            trace = controller.trace[:answered].copy()
-            diverged = plant.diverged or answered < n or not np.all(np.isfinite(trace[:, Col.u]))
-        score = score_arrays(trace[:, Col.e1], trace[:, Col.u], cfg.episode.as_array(), diverged=diverged)
+        run = run_of(self.recorder, cfg, self.measured)
+        bad = ~np.isfinite(run.data[:, Col.y:Col.P2 + 1]).all(axis=1) | (np.abs(run.y) > cfg.episode.y_limit)
+        diverged = len(run) < n or bool(bad.any()) or not np.all(np.isfinite(run.u))
+        score = score_arrays(run.e1, run.u, cfg.episode.as_array(), diverged=diverged)
         conflicts = (plant.conflicts, controller.conflicts)
         if any(conflicts):
             raise HasControlError(
@@ -241,7 +235,23 @@ class _Composed:
                 f"({conflicts[0]} samples answered twice, {conflicts[1]} states out of order); "
                 "the numbers would not be this run's: use another --namespace or ROS_DOMAIN_ID")
         figures = loop_figures(plant.sample, loop.seconds, cfg.episode.step, plant.failsafe_events, loop.paced)
-        return StackRun(Run(trace), score, seconds, plant.failsafe_events, bag, figures, loop.missed_at, close_seconds)
+        return StackRun(run, score, seconds, plant.failsafe_events, bag, figures, loop.missed_at, close_seconds)
+
+
+def _run_topics(measured: bool, realtime: bool) -> dict[str, str]:
+    """The topics a stack's run is made of (:func:`run_of`): the plant's true
+    states, the commands, the controller's internals, and in a paced run the
+    samples the plant ran without their command."""
+    return {TRUE_STATE if measured else STATE: JOINT_STATE, COMMAND: JOINT_STATE, CONTROLLER_STATE: FLOAT64_ARRAY,
+            **({MISSED: FLOAT64_ARRAY} if realtime else {})}
+
+
+def run_of(recorder: Recorder, cfg: Config, measured: bool) -> Run:
+    """The run ``recorder`` took (:func:`~has_control.wire.run_messages.run_of_messages`)."""
+    ep = cfg.episode
+    return run_of_messages(recorder.taken(TRUE_STATE if measured else STATE), recorder.taken(COMMAND),
+                           recorder.taken(CONTROLLER_STATE), recorder.taken(MISSED), ep.step, ep.step_ns,
+                           EpisodeArrays.from_config(cfg).reference)
 
 
 def _bring_up(node) -> None:
@@ -299,36 +309,6 @@ def _stop_on_signals(plant, interrupted: list | None) -> None:
 
 
 _previous: dict = {}
-
-
-def missed_messages(stats, log: list[tuple], step: float) -> list[bytes]:
-    """The paced loop's missed samples as ``plant/missed`` messages (see
-    :data:`~has_control.wire.topics.MISSED_COLUMNS`): t [s], the command the
-    plant ran with [m] (from its ``log``), 1.0 on the fail-safe."""
-    def samples(spans) -> np.ndarray:
-        return np.concatenate([np.arange(a, b + 1) for a, b in spans]) if spans else np.zeros(0, np.int64)
-    missed = samples(stats.missed_spans)
-    if not missed.size:
-        return []
-    ran = {int(row[0]): float(row[-1]) for row in log}               # sample -> u it ran with (the last field)
-    rows = np.column_stack([missed * step, [ran.get(int(i), np.nan) for i in missed],
-                            np.isin(missed, samples(stats.failsafe_spans)).astype(float)])
-    return cdr.encode_float64_arrays(rows, column_label(MISSED_COLUMNS))
-
-
-def _plant_trace(log: list[tuple], answered: np.ndarray, cfg: Config) -> np.ndarray:
-    """A paced run's trace from what the plant ran: its states and the command
-    each sample ran with (a held one after a miss), e1 against the reference;
-    the controller's internals where it answered that sample (else NaN)."""
-    rows = np.array(log, dtype=float).reshape(-1, 6)          # (sample, y, ẏ, P1, P2, u)
-    trace = answered[:len(rows)].copy()
-    t = rows[:, 0] * cfg.episode.step
-    rp = EpisodeArrays.from_config(cfg).reference
-    x1d = reference_series(rp, t)[:, 0]
-    trace[:, Col.t], trace[:, Col.x1d], trace[:, Col.u] = t, x1d, rows[:, 5]
-    trace[:, Col.y:Col.P2 + 1] = rows[:, 1:5]                  # y, ẏ, P1, P2
-    trace[:, Col.e1] = x1d - rows[:, 1]                        # SPEC §3: e1 = x1d − x1
-    return trace
 
 
 def _lockstep_check(plant, timeout: float, check):

@@ -33,7 +33,9 @@ STATE, COMMAND, CLOCK_TOPIC = "state", "command", "clock"
 #: when the plant adds the measurement noise (``noise.added_by: plant``).
 TRUE_STATE = "true_state"
 REFERENCE, CONTROLLER_STATE, GAINS = "controller/reference", "controller/controller_state", "controller/gains"
-#: A realtime run's samples that ran without their command (recorded by ``stack --realtime --record``).
+#: The samples a plant ran without their command (the last one held, or the valve centred), as the plant
+#: reports them to in-process observers (:attr:`~has_control.loop.plant.PlantProcess.on_unanswered`;
+#: recorded by ``stack --realtime --record``).
 MISSED = "plant/missed"
 
 STATE_NAMES = ["actuator", "chamber_1", "chamber_2"]
@@ -90,6 +92,7 @@ CLOCK_LAYOUT = codec.clock_layout()
 CONTROLLER_STATE_LAYOUT = codec.float64_array_layout(CONTROLLER_STATE_COLUMNS)
 REFERENCE_LAYOUT = codec.float64_array_layout(REFERENCE_COLUMNS)
 GAINS_LAYOUT = codec.float64_array_layout(GAINS_COLUMNS)
+MISSED_LAYOUT = codec.float64_array_layout(MISSED_COLUMNS)
 #: The tuner's ~/progress: iteration, best J, gains [1/s], evaluations, elapsed [s], ETA [s].
 PROGRESS_COLUMNS = ("iteration", "best_J", "k1", "k2", "k3", "evaluations", "elapsed_s", "eta_s")
 PROGRESS_LAYOUT = codec.float64_array_layout(PROGRESS_COLUMNS)
