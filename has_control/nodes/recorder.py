@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import struct
 import threading
+from typing import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -115,13 +116,13 @@ class Recorder:
                     self.written[topic] + len(pending) >= self.samples_wanted:
                 self.done.set()
 
-    def sink(self, topic: str):
+    def sink(self, topic: str) -> Callable[[bytes], None] | None:
         """The in-process tap for ``topic`` (its full name): a function that takes
         each message as published, on the publishing thread, with no lock (the
-        tap and the hand-over to the writer run on that one thread); a topic
-        not recorded is ignored."""
+        tap and the hand-over to the writer run on that one thread); None for a
+        topic not recorded."""
         if topic not in self.pending:
-            return _ignore
+            return None
         pending = self.pending[topic]
         if topic != self._state:
             return pending.append
@@ -216,10 +217,6 @@ class Recorder:
         """Stop taking messages and close the bag."""
         w = self.detach()
         return w.close() if w is not None else None
-
-
-def _ignore(data: bytes) -> None:
-    """The tap of a topic not recorded."""
 
 
 def _write(writer: BagWriter, batch: dict[str, list[bytes]], topics: dict, prefix: str) -> None:

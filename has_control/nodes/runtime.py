@@ -112,11 +112,11 @@ def raw_publish(publisher, tap=None):
     """A function that publishes serialized bytes (``publish(bytes)``) on
     ``publisher``, and hands them to ``tap(topic)``, an in-process observer
     such as the recorder's :meth:`~has_control.nodes.recorder.Recorder.sink`,
-    if one is given."""
+    if one is given and takes the topic (``tap(topic)`` not None)."""
     publish = publisher.publish
-    if tap is None:
+    take = tap(publisher.topic_name) if tap is not None else None
+    if take is None:                             # no observer takes this topic
         return publish
-    take = tap(publisher.topic_name)
 
     def publish_and_tap(data: bytes) -> None:
         publish(data)
@@ -147,7 +147,9 @@ def tee(*taps):
         return taps[0] if taps else None
 
     def tap(topic: str):
-        takes = tuple(t(topic) for t in taps)
+        takes = tuple(f for f in (t(topic) for t in taps) if f is not None)
+        if len(takes) <= 1:
+            return takes[0] if takes else None
 
         def take(data: bytes) -> None:
             for f in takes:

@@ -213,7 +213,7 @@ class _Composed:
     def close(self) -> tuple[Path | None, float]:
         """Close the bag (its time [s] measured) and destroy the nodes."""
         closing = time.perf_counter()
-        bag = self.recorder.close() if self.recorder is not None and self.recorder.writer is not None else None
+        bag = self.recorder.close() if self.recorder is not None else None     # None: no bag
         close_seconds = time.perf_counter() - closing
         if self.executor is not None:
             self.executor.shutdown()
