@@ -265,21 +265,12 @@ class ControllerNode(LifecycleNode):
 
     # --- diagnostics -----------------------------------------------------------
     def _diagnose(self) -> None:
-        """/diagnostics: "<node>: control law" with the counts and the estimates' bounds
-        (and, in a controller process with the collector off, the young generations' cycles)."""
+        """/diagnostics: "<node>: control law" (:meth:`ControllerProcess.diagnosis`: the counts and
+        the estimates' bounds; and, in a controller process with the collector off, the young generations' cycles)."""
         if not gc.isenabled():
             gc.collect(1)
-        p = self.process
-        in_bounds = p.estimates_in_bounds()
-        values = {"lifecycle": state_label(self), "states_answered": p.states_answered, "late": p.late,
-                  "malformed_states": p.malformed_states, "conflicts": self.conflicts,
-                  "a1_hat": f"{p.a1_hat:.6g}", "a2_hat": f"{p.a2_hat:.6g}", "estimates_in_bounds": in_bounds,
-                  "states_missing": getattr(self.port, "missing", 0), "states_stale": getattr(self.port, "stale", 0),
-                  "states_repeated": getattr(self.port, "repeated", 0), "restarts": getattr(self.port, "restarts", 0)}
-        message = (f"{state_label(self)}, {p.states_answered} answered, {p.late} late, "
-                   f"{p.malformed_states} malformed" + ("" if in_bounds else ", estimates out of bounds"))
-        publish_diagnostics(self, self.diagnostics_pub, "control law", "has_control controller",
-                            values, in_bounds and not self.conflicts, message)
+        values, ok, message = self.process.diagnosis(state_label(self), self.conflicts, self.port)
+        publish_diagnostics(self, self.diagnostics_pub, "control law", "has_control controller", values, ok, message)
 
 
 def main(args=None):
