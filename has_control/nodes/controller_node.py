@@ -65,6 +65,7 @@ import gc
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
@@ -95,11 +96,6 @@ OWN_PARAMETERS = table((
     AUTOSTART,
 ))
 _COMMAND_TYPES = {"JointState": JointState, "Float64MultiArray": Float64MultiArray}
-
-
-def _serialize(msg) -> bytes:
-    from rclpy.serialization import serialize_message
-    return serialize_message(msg)
 
 
 class ControllerNode(LifecycleNode):
@@ -176,7 +172,7 @@ class ControllerNode(LifecycleNode):
                       raw_publish(self.gains_pub, tap), bool(param["publish_internals"]))
         self.port = port = make_port(self.interface, process, out, self.conflicts_guard, mapping=mapping,
                                      state_topic=param["joint_states_topic"], command_topic=param["command_topic"],
-                                     serialize=_serialize)
+                                     serialize=serialize_message)
         self.command_pub = self.create_publisher(_COMMAND_TYPES[port.command_type], port.command_topic,
                                                  CONTROL_OFFERED_QOS)
         out.command, out.command_again = raw_publish(self.command_pub, tap), self.command_pub.publish

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -30,6 +31,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from has_control.config import build_config, config_parameters, with_horizon
 from has_control.core.cost import score_arrays
 from has_control.core.episode import Col, simulate
 from has_control.core.params import Config
@@ -40,6 +42,9 @@ from has_control.deploy.watchdog import WatchdogLimits
 from has_control.deploy.watched import Pairing, Watched, gains_of, internals_of
 from has_control.wire.codec import float64_array_layout
 from has_control.wire.topics import FLOAT64_ARRAY, JOINT_STATE
+from has_control.nodes.controller_node import ControllerNode
+from has_control.nodes.plant_node import PREFIXES as PLANT_PREFIXES, PlantNode
+from has_control.nodes.recorder import Recorder
 
 #: The watchdog's series in the bag: (t [s], u [m], e1 [m], trip reason (0: none)).
 WATCHDOG_TOPIC = "deploy/watchdog"
@@ -81,8 +86,6 @@ class DeployNode(Node):
         topic, ty = watched.command
         self.recorder = None
         if record is not None:
-            # lazy: the bag writer only when recording
-            from has_control.nodes.recorder import Recorder
             rec_topics = {watched.internals.lstrip("/"): FLOAT64_ARRAY, watched.gains.lstrip("/"): FLOAT64_ARRAY}
             if watched.layout == "has_control":   # a stamped command: its log time is the sample's
                 rec_topics[topic.lstrip("/")] = JOINT_STATE
@@ -196,11 +199,6 @@ def deploy_on_plant_node(cfg: Config, plan: DeploymentPlan, limits: WatchdogLimi
     :class:`DeployNode` on one executor: the deployment through the topics and
     the controller's parameters as against any running machine. Returns (the
     :class:`NodeDeployment`, the controller's trace of the run (TRACE_COLUMNS))."""
-    # lazy: the plant and controller nodes load the loop's compiled steps; only this composition needs them
-    from rclpy.experimental import EventsExecutor
-    from has_control.config import build_config, config_parameters, with_horizon
-    from has_control.nodes.controller_node import ControllerNode
-    from has_control.nodes.plant_node import PREFIXES as PLANT_PREFIXES, PlantNode
     predicted_horizon = cfg.episode.horizon                       # what a prediction on ``cfg`` ran over
     cfg = with_horizon(cfg, max(plan.duration() + 0.05, 1.5))    # the plan, and a little to see its end
     cfg = build_config({f"gains.k{j + 1}": float(plan.safe[j]) for j in range(3)}, source="the safe gains", base=cfg)
