@@ -95,9 +95,6 @@ class TunerNode(Node):
     # what the service holds: the settings of the last (or next) session, its status and result
     settings = property(lambda self: self.service.settings)
     cfg = property(lambda self: self.settings.cfg)
-    tuning = property(lambda self: self.settings.tuning)
-    evaluator = property(lambda self: self.settings.evaluator)
-    lane_timeout = property(lambda self: self.settings.lane_timeout)
     status = property(lambda self: self.service.status)
     result = property(lambda self: self.service.result)
     error = property(lambda self: self.service.error)
