@@ -45,6 +45,13 @@ Topic ``~/progress`` (std_msgs/Float64MultiArray, its dimension labelled
 with the columns of :data:`has_control.wire.topics.PROGRESS_COLUMNS`):
 [iteration, best J, k1, k2, k3 [1/s], evaluations, elapsed [s], ETA [s]],
 once per iteration.
+
+The node is wiring (the parameters, the services, ``~/progress``, the lanes)
+over ROS-free modules: the settings checks
+(:mod:`has_control.tuning.service_settings`), the session service with its
+status and result (:mod:`has_control.tuning.service`), the session over the
+lanes (:mod:`has_control.tuning.lane_session`) and the graph evaluator
+(:mod:`has_control.tuning.graph_evaluator`).
 """
 from __future__ import annotations
 
