@@ -135,3 +135,17 @@ class ControllerProcess:
     def estimates_in_bounds(self) -> bool:
         cp = self.cfg.adaptation
         return all(lo <= v <= hi for v, lo, hi in zip((self.a1_hat, self.a2_hat), cp.lower, cp.upper))
+
+    def diagnosis(self, lifecycle: str, conflicts: int, port) -> tuple[dict, bool, str]:
+        """The "control law" report: (values, OK, message). ``lifecycle``: the node's state;
+        ``conflicts``: states from a second plant; ``port``: its counts of states missing,
+        stale, repeated and of restarts (a port without them: 0)."""
+        in_bounds = self.estimates_in_bounds()
+        values = {"lifecycle": lifecycle, "states_answered": self.states_answered, "late": self.late,
+                  "malformed_states": self.malformed_states, "conflicts": conflicts,
+                  "a1_hat": f"{self.a1_hat:.6g}", "a2_hat": f"{self.a2_hat:.6g}", "estimates_in_bounds": in_bounds,
+                  "states_missing": getattr(port, "missing", 0), "states_stale": getattr(port, "stale", 0),
+                  "states_repeated": getattr(port, "repeated", 0), "restarts": getattr(port, "restarts", 0)}
+        message = (f"{lifecycle}, {self.states_answered} answered, {self.late} late, "
+                   f"{self.malformed_states} malformed" + ("" if in_bounds else ", estimates out of bounds"))
+        return values, in_bounds and not conflicts, message

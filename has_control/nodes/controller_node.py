@@ -65,6 +65,7 @@ import gc
 from diagnostic_msgs.msg import DiagnosticArray
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
@@ -95,11 +96,6 @@ OWN_PARAMETERS = table((
     AUTOSTART,
 ))
 _COMMAND_TYPES = {"JointState": JointState, "Float64MultiArray": Float64MultiArray}
-
-
-def _serialize(msg) -> bytes:
-    from rclpy.serialization import serialize_message
-    return serialize_message(msg)
 
 
 class ControllerNode(LifecycleNode):
@@ -176,7 +172,7 @@ class ControllerNode(LifecycleNode):
                       raw_publish(self.gains_pub, tap), bool(param["publish_internals"]))
         self.port = port = make_port(self.interface, process, out, self.conflicts_guard, mapping=mapping,
                                      state_topic=param["joint_states_topic"], command_topic=param["command_topic"],
-                                     serialize=_serialize)
+                                     serialize=serialize_message)
         self.command_pub = self.create_publisher(_COMMAND_TYPES[port.command_type], port.command_topic,
                                                  CONTROL_OFFERED_QOS)
         out.command, out.command_again = raw_publish(self.command_pub, tap), self.command_pub.publish
@@ -265,21 +261,12 @@ class ControllerNode(LifecycleNode):
 
     # --- diagnostics -----------------------------------------------------------
     def _diagnose(self) -> None:
-        """/diagnostics: "<node>: control law" with the counts and the estimates' bounds
-        (and, in a controller process with the collector off, the young generations' cycles)."""
+        """/diagnostics: "<node>: control law" (:meth:`ControllerProcess.diagnosis`: the counts and
+        the estimates' bounds; and, in a controller process with the collector off, the young generations' cycles)."""
         if not gc.isenabled():
             gc.collect(1)
-        p = self.process
-        in_bounds = p.estimates_in_bounds()
-        values = {"lifecycle": state_label(self), "states_answered": p.states_answered, "late": p.late,
-                  "malformed_states": p.malformed_states, "conflicts": self.conflicts,
-                  "a1_hat": f"{p.a1_hat:.6g}", "a2_hat": f"{p.a2_hat:.6g}", "estimates_in_bounds": in_bounds,
-                  "states_missing": getattr(self.port, "missing", 0), "states_stale": getattr(self.port, "stale", 0),
-                  "states_repeated": getattr(self.port, "repeated", 0), "restarts": getattr(self.port, "restarts", 0)}
-        message = (f"{state_label(self)}, {p.states_answered} answered, {p.late} late, "
-                   f"{p.malformed_states} malformed" + ("" if in_bounds else ", estimates out of bounds"))
-        publish_diagnostics(self, self.diagnostics_pub, "control law", "has_control controller",
-                            values, in_bounds and not self.conflicts, message)
+        values, ok, message = self.process.diagnosis(state_label(self), self.conflicts, self.port)
+        publish_diagnostics(self, self.diagnostics_pub, "control law", "has_control controller", values, ok, message)
 
 
 def main(args=None):

@@ -14,15 +14,16 @@ new gains take effect), so the report gives the fallback's latency in
 samples, from the sample that tripped to the first sample run on the fallback
 gains. The run (the watched topics and the watchdog's series, topic
 ``deploy/watchdog`` [t, u, e1, reason]) is recorded to a bag when asked.
+The bookkeeping of the changes asked and the report are ROS-free
+(:mod:`has_control.deploy.report`); the node wires the topics and the parameters.
 """
 from __future__ import annotations
 
-import math
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -30,15 +31,20 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
+from has_control.config import build_config, config_parameters, with_horizon
 from has_control.core.cost import score_arrays
 from has_control.core.episode import Col, simulate
 from has_control.core.params import Config
-from has_control.deploy.guarded import DeploymentPlan, gap_words
+from has_control.deploy.guarded import DeploymentPlan
+from has_control.deploy.report import Changes, NodeDeployment
 from has_control.deploy.stepping import Deployer
 from has_control.deploy.watchdog import WatchdogLimits
 from has_control.deploy.watched import Pairing, Watched, gains_of, internals_of
 from has_control.wire.codec import float64_array_layout
 from has_control.wire.topics import FLOAT64_ARRAY, JOINT_STATE
+from has_control.nodes.controller_node import ControllerNode
+from has_control.nodes.plant_node import PREFIXES as PLANT_PREFIXES, PlantNode
+from has_control.nodes.recorder import Recorder
 
 #: The watchdog's series in the bag: (t [s], u [m], e1 [m], trip reason (0: none)).
 WATCHDOG_TOPIC = "deploy/watchdog"
@@ -49,85 +55,6 @@ _CLASSES = {JOINT_STATE: JointState, FLOAT64_ARRAY: Float64MultiArray}
 def _qos(latched: bool = False) -> QoSProfile:
     return QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
-
-
-@dataclass
-class NodeDeployment:
-    """What a deployment through the topics did. Samples are the loop's;
-    ``changes``: (sample asked, row, why, sample it took effect or None)."""
-
-    plan: DeploymentPlan
-    step: float
-    changes: list = field(default_factory=list)
-    tripped: tuple | None = None              # (sample, reason, step)
-    second_trip: int | None = None
-    first: int | None = None
-    last: int | None = None
-    J: float = math.nan                        # of the samples watched
-    safe_J: float | None = None                # the safe gains alone over the same run (a simulated machine)
-    tuned_rate: float | None = None            # J per second on the final gains' step (no trip)
-    predicted_J: float | None = None
-    predicted_horizon: float | None = None
-    final_gains: tuple = ()
-    bag: Path | None = None
-
-    def fallback_latency(self) -> float | None:
-        """Seconds of the loop from the sample that tripped to the first sample on the fallback gains."""
-        if self.tripped is None:
-            return None
-        for asked, _row, why, took in self.changes:
-            if why.startswith("fallback") and took is not None:
-                return (took - self.tripped[0]) * self.step
-        return None
-
-    @property
-    def gap(self) -> float | None:
-        """Measured over predicted J of the tuned gains: the tuned gains' mean cost rate on
-        the machine (their step, when no trip) against the prediction's over its horizon."""
-        if self.tuned_rate is None or not self.predicted_J or not self.predicted_horizon:
-            return None
-        return self.tuned_rate / (self.predicted_J / self.predicted_horizon)
-
-    def lines(self) -> list[str]:
-        n = (self.last - self.first + 1) if self.first is not None else 0
-        out = [f"deployed through the controller's parameters in {self.plan.steps} steps of {self.plan.hold:g} s "
-               f"after {self.plan.settle:g} s: {n} samples watched, J = {self.J:.6e}"
-               + (f" (safe gains alone {self.safe_J:.6e}, {self.J / self.safe_J:.3g}x)" if self.safe_J else "")]
-        for asked, row, why, took in self.changes:
-            when = f"took effect at sample {took} (+{took - asked})" if took is not None else "not seen taking effect"
-            out.append(f"  sample {asked}: row {row} ({why}), {when}")
-        if self.tripped is None:
-            out.append(f"watchdog: no trip; final gains ({', '.join(f'{k:.2f}' for k in self.final_gains)})")
-        else:
-            lat = self.fallback_latency()
-            out.append(f"watchdog: TRIPPED at t = {self.tripped[0] * self.step:.4f} s on step {self.tripped[2]} "
-                       f"({self.tripped[1]}); fallback in effect "
-                       + (f"{lat * 1e3:.1f} ms later" if lat is not None else "not seen")
-                       + f"; final gains ({', '.join(f'{k:.2f}' for k in self.final_gains)})")
-        g = self.gap
-        if g is not None:
-            out.append(f"measured against predicted J: {g:.3g}x ({gap_words(g)}; "
-                       f"the tuned gains' cost rate over their step against the prediction's over "
-                       f"{self.predicted_horizon:g} s)")
-        elif self.predicted_J is not None:
-            out.append("measured against predicted J: not measured (the tuned gains did not hold their step)")
-        if self.bag is not None:
-            out.append(f"wrote {self.bag}")
-        return out
-
-    def as_json(self) -> dict:
-        f = lambda v: v if v is None or math.isfinite(v) else None  # noqa: E731
-        return {"J": f(self.J), "safe_J": self.safe_J,
-                "samples": (self.last - self.first + 1) if self.first is not None else 0,
-                "tripped": self.tripped is not None,
-                "tripped_at": self.tripped[0] * self.step if self.tripped else None,
-                "reason": self.tripped[1] if self.tripped else None, "step": self.tripped[2] if self.tripped else None,
-                "second_trip_at": self.second_trip * self.step if self.second_trip is not None else None,
-                "fallback_latency": self.fallback_latency(), "final_gains": list(self.final_gains),
-                "changes": [{"sample": a, "row": r, "why": w, "took_effect": t} for a, r, w, t in self.changes],
-                "predicted_J": self.predicted_J, "gap": f(self.gap) if self.gap is not None else None,
-                "gap_over_2x": bool(self.gap is not None and self.gap > 2.0),
-                "bag": str(self.bag) if self.bag else None}
 
 
 class DeployNode(Node):
@@ -155,12 +82,10 @@ class DeployNode(Node):
         self.done = False
         self.refused: list[str] = []
         self.gains_seen: list[tuple[int, tuple]] = []
-        self._asked: list[list] = []               # [sample asked, row, why, took effect]
+        self.changes = Changes(self.schedule)      # asked, and when each took effect
         topic, ty = watched.command
         self.recorder = None
         if record is not None:
-            # lazy: the bag writer only when recording
-            from has_control.nodes.recorder import Recorder
             rec_topics = {watched.internals.lstrip("/"): FLOAT64_ARRAY, watched.gains.lstrip("/"): FLOAT64_ARRAY}
             if watched.layout == "has_control":   # a stamped command: its log time is the sample's
                 rec_topics[topic.lstrip("/")] = JOINT_STATE
@@ -197,12 +122,8 @@ class DeployNode(Node):
         got = gains_of(data, self.dt)
         if got is None:
             return
-        i, k = got
-        self.gains_seen.append((i, k))
-        for entry in self._asked:                   # the first announcement of the gains asked for
-            same = all(math.isclose(a, b, rel_tol=1e-9) for a, b in zip(k, self.schedule[entry[1]]))
-            if entry[3] is None and entry[0] <= i and same:
-                entry[3] = i
+        self.gains_seen.append(got)
+        self.changes.announced(*got)
 
     def _sample(self, i: int, u: float, e1: float) -> None:
         if self.done:
@@ -217,7 +138,7 @@ class DeployNode(Node):
         k = self.schedule[row]
         future = self.params.set_parameters_atomically(
             [Parameter(f"gains.k{j + 1}", value=float(k[j])) for j in range(3)])
-        self._asked.append([i, row, why, None])
+        self.changes.ask(i, row, why)
 
         def answered(f, row=row) -> None:
             r = f.result().result if f.result() is not None else None
@@ -229,23 +150,12 @@ class DeployNode(Node):
     def _finish(self) -> None:
         """The plan has run: the report (and the bag)."""
         self.done = True
-        d, res = self.deployer, self.result
-        res.first, res.last = d.first, d.last
-        res.tripped, res.second_trip = d.tripped(), d.second_trip()
-        ep = self.cfg.episode.as_array()
-        res.J = d.cost(ep)
-        res.final_gains = tuple(float(v) for v in self.schedule[d.final_row()])
-        if res.tripped is None and self._asked:
-            last_step = self._asked[-1]
-            since = last_step[3] if last_step[3] is not None else last_step[0]
-            seen = d.last - since + 1
-            if seen > 0:
-                res.tuned_rate = d.cost(ep, since=since) / (seen * self.dt)
+        self.result.take(self.deployer, self.schedule, self.cfg.episode.as_array(), self.changes)
 
     def close(self) -> NodeDeployment:
         """Take what the gains topic said, write the bag; the report."""
         res = self.result
-        res.changes = [tuple(e) for e in self._asked]
+        res.changes = self.changes.rows()
         if self.recorder is not None:
             layout = float64_array_layout(WATCHDOG_COLUMNS)
             self.recorder.add(WATCHDOG_TOPIC, FLOAT64_ARRAY, [layout.encode(row) for row in self.deployer.series])
@@ -289,11 +199,6 @@ def deploy_on_plant_node(cfg: Config, plan: DeploymentPlan, limits: WatchdogLimi
     :class:`DeployNode` on one executor: the deployment through the topics and
     the controller's parameters as against any running machine. Returns (the
     :class:`NodeDeployment`, the controller's trace of the run (TRACE_COLUMNS))."""
-    # lazy: the plant and controller nodes load the loop's compiled steps; only this composition needs them
-    from rclpy.experimental import EventsExecutor
-    from has_control.config import build_config, config_parameters, with_horizon
-    from has_control.nodes.controller_node import ControllerNode
-    from has_control.nodes.plant_node import PREFIXES as PLANT_PREFIXES, PlantNode
     predicted_horizon = cfg.episode.horizon                       # what a prediction on ``cfg`` ran over
     cfg = with_horizon(cfg, max(plan.duration() + 0.05, 1.5))    # the plan, and a little to see its end
     cfg = build_config({f"gains.k{j + 1}": float(plan.safe[j]) for j in range(3)}, source="the safe gains", base=cfg)

@@ -70,7 +70,7 @@ def check_port(port, what: str) -> int:
 
 
 def _schema(msgtype: str):
-    import foxglove
+    import foxglove                              # lazy: foxglove-sdk is the optional "live" extra
 
     return foxglove.Schema(name=msgtype, encoding="ros2msg", data=msgdef(msgtype).encode())
 
@@ -100,7 +100,7 @@ class LiveView:
     def __init__(self, port: int = DEFAULT_PORT, host: str = "127.0.0.1", name: str = "has_control",
                  what: str = "--foxglove"):
         try:
-            import foxglove
+            import foxglove                          # lazy: foxglove-sdk is the optional "live" extra
         except ImportError:
             raise HasControlError(f"{what} {port}: needs foxglove-sdk (pip install foxglove-sdk)") from None
         if port != 0:

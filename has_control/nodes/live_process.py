@@ -43,6 +43,7 @@ _HEAD = struct.Struct("<Q")
 _SLOT_HEAD = struct.Struct("<QHH")
 START_TIMEOUT = 60.0             # [s] for the viewer process to serve (imports included)
 WAIT_MAX = 3600.0                # [s] the longest wait for a client
+LINGER = 0.2                     # [s] served after the run's last message, before a subscribed client is cut off
 
 
 def _anonymous_file(size: int) -> int:
@@ -253,7 +254,11 @@ def _viewer(ring_fd: int, big_fd: int, port: int, host: str, name: str, what: st
                 print(f"channel {tid}", flush=True)          # the channel exists before the sink is used
             elif cmd == "wait":
                 waiting = time.monotonic() + min(max(float(rest), 0.0), WAIT_MAX)
-            elif cmd == "close":
+            elif cmd == "close":                         # what the run wrote before it closed is served first
+                for k, r in enumerate(rings):
+                    next_read[k] = r.read(next_read[k], take)
+                if view.subscribed.is_set():
+                    time.sleep(LINGER)
                 view.close()
                 for r in rings:
                     r.close()

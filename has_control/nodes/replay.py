@@ -22,12 +22,14 @@ from dataclasses import dataclass
 
 import numpy as np
 import rclpy
+from builtin_interfaces.msg import Time
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
+from std_srvs.srv import Trigger
 
 from has_control.wire import cdr
 from has_control.bag import CLOCK, COMMAND, FLOAT64_ARRAY, GAINS, JOINT_STATE, STATE, STRING, BagError, read_bag
@@ -110,7 +112,6 @@ def _wait_for(pubs: dict, n: int, timeout: float) -> None:
 
 
 def _time(ns: int):
-    from builtin_interfaces.msg import Time
     return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
@@ -225,7 +226,6 @@ def _check_joint_states(path, topic: str, messages: list) -> None:
 def _reset(ex, driver, node: str) -> None:
     """The running controller ``node`` back to â(0) through its ``~/reset``
     (BagError, one line, when there is no such node)."""
-    from std_srvs.srv import Trigger
     client = driver.create_client(Trigger, f"{node}/reset")
     end = time.monotonic() + 10.0
     while not client.service_is_ready():

@@ -6,6 +6,7 @@ Names, types, joints and wire layouts of the topics are in
 from __future__ import annotations
 
 import faulthandler
+import gc
 import os
 import signal
 import sys
@@ -16,12 +17,17 @@ from contextlib import contextmanager
 
 import rclpy
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy._rclpy_pybind11 import RCLError
+from rclpy.exceptions import NameValidationException, ParameterException
+from rclpy.executors import ExternalShutdownException
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.logging import LoggingSeverity
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
 
 from has_control.common.interrupts import exit_quietly_on_interrupt
 from has_control.common.errors import HasControlError, shown
@@ -80,7 +86,6 @@ def normalise_namespace(namespace: str | None) -> str:
 def publish_diagnostics(node, publisher, what: str, hardware_id: str, values: dict, ok: bool, message: str) -> None:
     """One ``diagnostic_msgs/DiagnosticArray`` on ``publisher``: status "<node>: ``what``",
     OK or WARN, ``values`` as key/value strings (floats to 6 significant digits)."""
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     status = DiagnosticStatus(
         level=DiagnosticStatus.OK if ok else DiagnosticStatus.WARN,
         name=f"{node.get_fully_qualified_name()}: {what}", message=message, hardware_id=hardware_id,
@@ -90,7 +95,6 @@ def publish_diagnostics(node, publisher, what: str, hardware_id: str, values: di
     publisher.publish(msg)
     taps = _diagnostics_taps.get(node)
     if taps:
-        from rclpy.serialization import serialize_message     # lazy: only a node whose diagnostics are tapped
         data = serialize_message(msg)
         for take in taps:
             take(data)
@@ -238,11 +242,6 @@ def node_main(args, make_node, serve) -> None:
     A bad parameter at start-up ends in one line naming it and exit status 2;
     Ctrl-C and SIGTERM (:class:`NodeSignals`) close the node and the context,
     then raise KeyboardInterrupt for the command line to end with one line and 130."""
-    import gc
-
-    from rclpy.exceptions import NameValidationException, ParameterException
-    from rclpy.executors import ExternalShutdownException
-
     prog = (args or sys.argv)[0].split("/")[-1] if (args or sys.argv) else "node"
     try:
         check_params_files(args if args is not None else sys.argv)
@@ -357,8 +356,6 @@ def _init(args, prog: str):
 def trigger_service(node, name: str, action, message: str):
     """A std_srvs/Trigger service ``name`` that calls ``action()`` and answers ``message``,
     or, when ``action()`` returns a reason (a string: it refused), success false with that reason."""
-    from std_srvs.srv import Trigger
-
     def on_call(request, response):
         refused = action()
         response.success = not isinstance(refused, str)

@@ -36,6 +36,7 @@ import sys
 import threading
 import time
 import uuid
+from concurrent.futures import CancelledError
 from contextlib import contextmanager
 from urllib.parse import urlsplit
 
@@ -352,9 +353,7 @@ class DaskBatch:
         out = np.empty((k.shape[0], len(cfgs), 4))
         if out.size == 0:
             return out
-        from concurrent.futures import CancelledError
-
-        from distributed import KilledWorker
+        from distributed import KilledWorker             # lazy: distributed is the optional "dask" extra
         try:
             tasks = plan_tasks(k.shape[0], [c.episode.samples for c in cfgs], self._workers(), chunk=self.chunk)
             tokens = self._stored(cfgs)

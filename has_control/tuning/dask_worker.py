@@ -4,9 +4,12 @@ the client imports this module only when it starts a batch.
 """
 from __future__ import annotations
 
+import os
 import signal
+import sys
 import threading
 
+import numba
 import numpy as np
 from distributed import WorkerPlugin, get_worker
 
@@ -65,11 +68,6 @@ def evaluate_chunk(gains: np.ndarray, store: str, token: str) -> np.ndarray:
 def warm_worker(gains: np.ndarray, cfg: Config) -> tuple[np.ndarray, dict]:
     """A worker's warm-up: load (or compile) the kernel, score the probe
     ``gains`` under ``cfg``, and say what the worker runs."""
-    import os
-    import sys
-
-    import numba
-
     scores = np.ascontiguousarray(evaluate_configs(gains, [cfg], workers=worker_threads())[:, 0])
     return scores, {"pid": os.getpid(), "python": sys.version.split()[0], "numba": numba.__version__,
                     "numpy": np.__version__, "has_control": os.path.dirname(os.path.dirname(os.path.abspath(__file__)))}

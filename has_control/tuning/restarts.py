@@ -133,12 +133,6 @@ class Restarts(BestSoFar):
             return np.clip(np.exp(lo + z * (hi - lo)), self.lower, self.upper)
         return self.lower + z * (self.upper - self.lower)
 
-    def _to_unit(self, x: np.ndarray) -> np.ndarray:
-        if self.settings.scale == "log":
-            lo, hi = np.log(self.lower), np.log(self.upper)
-            return np.clip((np.log(x) - lo) / (hi - lo), 0.0, 1.0)
-        return np.clip((x - self.lower) / (self.upper - self.lower), 0.0, 1.0)
-
     # --- the algorithm: a generator of batches, sent their costs -------------
     def _search(self, z0: np.ndarray, sigma: float) -> "cma.CMAEvolutionStrategy":
         s = self.settings

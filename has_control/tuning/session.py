@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 import time
 from pathlib import Path
@@ -332,7 +333,6 @@ def _last_good_iteration(records, states, tuning: Tuning) -> tuple[int, object |
 def swarm_result(directory: str | Path):
     """The session's :class:`~has_control.tuning.optimiser.OptimiseResult` rebuilt from its iteration records
     (for the convergence and gain figures)."""
-    import math
     bag = read_bag(Path(directory) / SESSION, topics=(ITERATION, RESULT), on_warning=lambda m: None)
     try:
         history = [record_from(_json(d)) for _, d in bag.messages.get(ITERATION, [])]
