@@ -324,7 +324,7 @@ def _processes(duration: float, domain: int, realtime: bool, internals: bool = T
 
 
 def _stack(duration: float, domain: int, **kw) -> dict:
-    run = run_stack(with_horizon(Config(), duration), domain_id=domain, **kw)
+    run = run_stack(with_horizon(Config(), duration), domain_id=domain, publish_internals=True, **kw)
     n = len(run.run)
     return {**run.loop, "seconds": run.seconds, "bag": run.bag,
             "with_close": n / (n / run.loop["samples_per_second"] + run.close_seconds)}

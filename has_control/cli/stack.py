@@ -77,7 +77,7 @@ def run(args) -> int:
     def progress(done: int, total: int, rate: float) -> None:
         line.show(f"stack ({mode}): {done:,} of {total:,} samples, {rate:,.0f} samples/s")
     try:
-        result = run_stack(cfg, gains, namespace=args.namespace or "", record=record,
+        result = run_stack(cfg, gains, namespace=args.namespace or "", publish_internals=True, record=record,
                            realtime=args.realtime, progress=progress if line and line.enabled else None,
                            foxglove=args.foxglove, foxglove_wait=args.foxglove_wait or 0.0,
                            announce=lambda text: print(text, flush=True))

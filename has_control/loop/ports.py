@@ -67,7 +67,9 @@ PREDICTED_GAP = 1000
 @dataclass
 class Outputs:
     """Where the controller writes: ``command`` (to observers too), ``command_again``
-    (a repeat or a centred valve: the topic only), ``internals``, ``reference``, ``gains``."""
+    (a repeat or a centred valve: the topic only), ``internals``, ``reference``, ``gains``;
+    ``observe_internals``: where the internals go when they are not published (an
+    in-process observer such as the stack's recorder; None: nowhere)."""
 
     command: Publish
     command_again: Publish
@@ -75,6 +77,7 @@ class Outputs:
     reference: Publish
     gains: Publish
     publish_internals: bool = True
+    observe_internals: Publish | None = None
 
 
 class _Port:
@@ -103,6 +106,8 @@ class _Port:
         if out.publish_internals:
             out.internals(bytes(p.internals))
             out.reference(bytes(p.reference))
+        elif out.observe_internals is not None:
+            out.observe_internals(bytes(p.internals))
         p.answered(began)
 
 

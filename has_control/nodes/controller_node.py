@@ -169,7 +169,8 @@ class ControllerNode(LifecycleNode):
         self.gains_pub = self.create_publisher(Float64MultiArray, "~/gains", qos(GAINS))
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         out = Outputs(None, None, raw_publish(self.internals_pub, tap), raw_publish(self.reference_pub, tap),
-                      raw_publish(self.gains_pub, tap), bool(param["publish_internals"]))
+                      raw_publish(self.gains_pub, tap), bool(param["publish_internals"]),
+                      tap(self.internals_pub.topic_name) if tap is not None else None)   # unpublished: to observers
         self.port = port = make_port(self.interface, process, out, self.conflicts_guard, mapping=mapping,
                                      state_topic=param["joint_states_topic"], command_topic=param["command_topic"],
                                      serialize=serialize_message)

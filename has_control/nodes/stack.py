@@ -77,7 +77,7 @@ def loop_figures(samples: int, seconds: float, step: float, failsafe: int, paced
 
 
 def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
-              args: list[str] | None = None,
+              publish_internals: bool = False, args: list[str] | None = None,
               context: rclpy.Context | None = None, timeout: float = 600.0,
               domain_id: int | None = None, record: str | Path | None = None,
               realtime: bool = False, priority: int = 50,
@@ -90,8 +90,9 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
 
     The run and its score are what the recorder took from the bytes the nodes
     publish (:func:`~has_control.wire.run_messages.run_of_messages`; the
-    controller publishes its internals). ``record``: also write them to a
-    rosbag2 MCAP bag at this path. ``progress(samples done, samples,
+    controller hands it its internals, published on ``~/controller_state`` and
+    ``~/reference`` with ``publish_internals`` or ``record``). ``record``: also
+    write them to a rosbag2 MCAP bag at this path. ``progress(samples done, samples,
     samples/s)`` is called about once a second. ``foxglove``: also serve the
     run's topics live on a Foxglove WebSocket at this port of 127.0.0.1 for the
     run, from a viewer process (:class:`~has_control.nodes.live_process.LiveViewProcess`:
@@ -112,7 +113,7 @@ def run_stack(cfg: Config | None = None, gains=None, namespace: str = "",
         stack = _Composed(namespace=namespace)
         interrupted: list = []
         try:
-            stack.compose(cfg, context, record, live, realtime, priority)
+            stack.compose(cfg, context, record, live, realtime, priority, publish_internals)
             if live is not None and foxglove_wait > 0:
                 if announce is not None:
                     announce(f"waiting up to {foxglove_wait:g} s for a Foxglove client")
@@ -149,7 +150,8 @@ class _Composed:
     nodes: list = field(default_factory=list)
     measured: bool = False
 
-    def compose(self, cfg: Config, context, record, live, realtime: bool, priority: int) -> None:
+    def compose(self, cfg: Config, context, record, live, realtime: bool, priority: int,
+                publish_internals: bool) -> None:
         """The recorder, both nodes (brought up: unconfigured -> inactive -> active)
         and the executor, matched to each other."""
         params, n = _overrides(cfg), cfg.episode.samples
@@ -169,7 +171,7 @@ class _Composed:
                                          Parameter("mode", value="realtime" if realtime else "lockstep"), managed]))
         self.nodes.append(self.plant)
         self.controller = ControllerNode(namespace=self.namespace, context=context, tap=tap, parameter_overrides=(
-            params + [Parameter("publish_internals", value=True), managed]))
+            params + [Parameter("publish_internals", value=publish_internals or record is not None), managed]))
         self.nodes.append(self.controller)
         for node in (self.plant, self.controller):
             tap_diagnostics(node, live and live.sink)   # the live view serves /diagnostics too
