@@ -208,3 +208,23 @@ def test_messages_of_another_layout_are_refused_not_misread():
     assert len(whole) == 200 and np.array_equal(chunked.data, whole.data)
     with pytest.raises(ValueError, match="state: a message of another layout"):
         run_of_messages(t["state"][:10] + t["command"][:1], t["command"], t["internals"], [], ep.step, ep.step_ns, rp)
+
+
+def test_a_recorder_without_a_bag_keeps_what_the_run_needs_in_chunks():
+    """The stack's recorder without --record: the topics it keeps, every message
+    in order, joined into one chunk per hand-over (no object per message); the
+    topics it does not record get no tap at all."""
+    from has_control.nodes.recorder import BATCH, Recorder
+    from has_control.wire.topics import COMMAND, JOINT_STATE, STATE, STATE_LAYOUT
+    topics = {STATE: JOINT_STATE, COMMAND: JOINT_STATE}
+    rec = Recorder(subscribe=False, topics=topics, keep=topics)
+    state, command = rec.sink("/state"), rec.sink("/command")
+    assert rec.sink("/clock") is None
+    states = [STATE_LAYOUT.encode(range(9), i * 300_000) for i in range(BATCH + 5)]
+    commands = [COMMAND_LAYOUT.encode([i * 1e-6], i * 300_000) for i in range(BATCH + 5)]
+    for s, c in zip(states, commands):
+        state(s)
+        command(c)
+    assert len(rec.taken(STATE)) == 1 + 5 and b"".join(rec.taken(STATE)) == b"".join(states)
+    assert b"".join(rec.taken(COMMAND)) == b"".join(commands) and rec.count(STATE) == rec.count(COMMAND) == BATCH + 5
+    assert rec.close() is None and b"".join(rec.taken(STATE)) == b"".join(states)    # no bag; kept after close

@@ -138,9 +138,11 @@ class Recorder:
         joined into one chunk per topic (no object per message)."""
         if self.writer is None:
             for t, chunks in self.kept.items():
-                if self.pending[t]:
-                    chunks.append(b"".join(self.pending[t]))
-                    self.pending[t].clear()
+                m = self.pending.get(t)
+                if m:
+                    chunks.append(b"".join(m))
+                    self.written[t] += len(m)
+                    m.clear()
             return
         batch = {}
         for t, m in self.pending.items():
