@@ -1,9 +1,14 @@
 import os
+import socket
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import rclpy
+
+from has_control.cli import main
 
 # test modules import each other's helpers (e.g. test_episode.PINNED) as plain modules
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -12,6 +17,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 _domain = [100 + os.getpid() % 60]
+
+#: The command line on a real interpreter (``python -m has_control.cli``): for the few tests that prove
+#: the entry point, a signal or a second process; argument checks call ``has_control.cli.main`` in-process.
+CLI = [sys.executable, "-m", "has_control.cli"]
 
 
 @pytest.fixture
@@ -64,3 +73,57 @@ def stopped_session(directory, particles: int, iterations: int, stop_after: int 
     session.close()
     session.release()
     return directory
+
+
+# --- helpers the test modules share (``from conftest import ...``) ---------------------------------
+
+def cli(*args, domain=None, timeout=900, **kw):
+    """``has-control *args`` in a subprocess (on ROS domain ``domain`` if given): its CompletedProcess."""
+    env = dict(kw.pop("env", None) or os.environ)
+    if domain is not None:
+        env["ROS_DOMAIN_ID"] = str(domain)
+    return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout, env=env, **kw)
+
+
+def one_error_line(rc, err, *culprits, code=2, warnings=False):
+    """Status ``rc`` is ``code`` and ``err`` is one line naming ``culprits``, no traceback
+    (``warnings``: besides lines "warning: ..." that say what was found)."""
+    assert rc == code, err
+    lines = [x for x in err.strip().splitlines() if not (warnings and "has-control: warning:" in x)]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for c in culprits:
+        assert str(c) in err, err
+    return err
+
+
+def one_line(capsys, argv, *culprits, code=2, warnings=False):
+    """``has_control.cli.main(argv)`` in-process ends with status ``code`` and one line on
+    stderr naming ``culprits``; that stderr."""
+    rc = main([str(a) for a in argv])
+    return one_error_line(rc, capsys.readouterr().err, *culprits, code=code, warnings=warnings)
+
+
+def argparse_error(capsys, argv, *culprits):
+    """``argv`` is refused by the argument parser: SystemExit 2 and one line naming ``culprits``."""
+    with pytest.raises(SystemExit) as info:
+        main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    for c in culprits:
+        assert str(c) in err, err
+    return err
+
+
+def spin_until(ex, cond, seconds, step=0.01):
+    """Spin executor ``ex`` until ``cond()`` holds or ``seconds`` [s] pass; ``cond()``."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end and not cond():
+        ex.spin_once(timeout_sec=step)
+    return cond()
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on (now)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

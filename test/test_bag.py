@@ -1,13 +1,12 @@
 """MCAP bags: what the recorder writes, scoring from it, other readers, bad files, replay."""
 import json
 import os
-import subprocess
-import sys
 import threading
 import time
 
 import numpy as np
 import pytest
+from conftest import cli
 import rclpy
 import yaml
 
@@ -29,14 +28,6 @@ def recorded(tmp_path_factory):
     cfg = with_horizon(Config(), HORIZON)
     run = run_stack(cfg, record=d, domain_id=231 if os.getpid() % 2 else 232)
     return d, cfg, run
-
-
-def cli(*args, domain=None):
-    env = dict(os.environ)
-    if domain is not None:
-        env["ROS_DOMAIN_ID"] = str(domain)
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=600, env=env)
 
 
 def test_one_state_and_one_command_per_sample(recorded):

@@ -9,6 +9,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 import pytest
+from conftest import cli
 
 from has_control.bag import BagWriter, read_bag, recorded_run, score_bag, write_trace
 from has_control.bag.series import run_series
@@ -36,11 +37,6 @@ def recorded(tmp_path_factory):
     cfg = with_horizon(Config(), HORIZON)
     run_stack(cfg, record=d, domain_id=230)                  # conftest hands out 100..229, test_bag 231, 232
     return d, cfg
-
-
-def cli(*args):
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=600)
 
 
 def _rewrite(src, dst, keep=lambda topic, i: True, custom=True, extra=()):

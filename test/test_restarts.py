@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import cli
 
 from has_control.bag import BagError, read_bag
 from has_control.config import CONFIG_DIR, Scenario, load_scenarios, with_horizon
@@ -32,11 +33,6 @@ LAGGY = (("plant.valve_time_constant", 1.0e-3), ("noise.position", 1.0e-6), ("no
 
 def short(k):
     return evaluate(k, SHORT)
-
-
-def cli(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=900, **kw)
 
 
 def _same(a, b) -> bool:

@@ -7,6 +7,7 @@ import sys
 import time
 
 import pytest
+from conftest import cli
 
 from has_control.bag import BagError, read_bag, score_bag
 from has_control.config import with_horizon
@@ -14,14 +15,6 @@ from has_control.nodes.stack import run_tuning_stack
 from has_control.core.params import Config
 from has_control.tuning.session import ITERATION, SESSION
 from has_control.tuning.tuner import load_tuning, tune
-
-
-def cli(*args, domain=None, **kw):
-    env = dict(os.environ)
-    if domain is not None:
-        env["ROS_DOMAIN_ID"] = str(domain)
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=900, env=env, **kw)
 
 
 @pytest.mark.ros
