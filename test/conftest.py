@@ -9,6 +9,9 @@ import pytest
 import rclpy
 
 from has_control.cli import main
+from has_control.config import with_horizon
+from has_control.core.params import Config
+from has_control.nodes.stack import run_stack
 
 # test modules import each other's helpers (e.g. test_episode.PINNED) as plain modules
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -39,6 +42,17 @@ def context(domain_id):
     rclpy.try_shutdown(context=ctx)
 
 
+@pytest.fixture(scope="session")
+def recorded(tmp_path_factory):
+    """One 1.5 s lock-step run of the reference configuration through the nodes, recorded as
+    ``stack --record`` records it (ROS domain of its own): (bag directory, Config, StackRun).
+    Run once per session; tests only read it (a test that changes a bag copies it first)."""
+    d = tmp_path_factory.mktemp("bags") / "run"
+    cfg = with_horizon(Config(), 1.5)
+    run = run_stack(cfg, record=d, domain_id=231 if os.getpid() % 2 else 232)   # domain_id hands out 100..229
+    return d, cfg, run
+
+
 def pytest_collection_modifyitems(config, items):
     """The long runs (marker ``slow``) only when ``-m`` names them: any other
     ``-m`` expression (e.g. ``-m "not ros"``) still leaves them out."""
@@ -54,7 +68,7 @@ def stopped_session(directory, particles: int, iterations: int, stop_after: int 
     """A pso-cp-tvac session in ``directory`` of ``particles`` x ``iterations``,
     stopped (its bag closed) after ``stop_after`` iterations, as a kill leaves it."""
     from has_control.config import with_horizon
-    from has_control.core.params import Config
+    from has_control.core.params import Config           # and rclpy load only then
     from has_control.tuning.session import Session
     from has_control.tuning.tuner import load_tuning, tune
     cfg = with_horizon(Config(), horizon)

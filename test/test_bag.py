@@ -1,6 +1,5 @@
 """MCAP bags: what the recorder writes, scoring from it, other readers, bad files, replay."""
 import json
-import os
 import threading
 import time
 
@@ -13,21 +12,12 @@ import yaml
 from has_control.wire import cdr
 from has_control.bag import BagError, read_bag, score_bag, typestore
 from has_control.core.episode import simulate
-from has_control.config import with_horizon
-from has_control.nodes.stack import run_stack
-from has_control.core.params import Config
 
 HORIZON = 1.5
 N = 5000
 
 
-@pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    """One 1.5 s lock-step run through the nodes, recorded (ROS domain of its own)."""
-    d = tmp_path_factory.mktemp("bags") / "run"
-    cfg = with_horizon(Config(), HORIZON)
-    run = run_stack(cfg, record=d, domain_id=231 if os.getpid() % 2 else 232)
-    return d, cfg, run
+# ``recorded``: conftest's one recorded run of the session (1.5 s, HORIZON) and its StackRun.
 
 
 def test_one_state_and_one_command_per_sample(recorded):

@@ -31,11 +31,9 @@ UNIT = re.compile(r"\[[^\]]+\]$")
 
 
 @pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    """One 1.5 s lock-step run through the nodes, recorded as ``stack --record`` records it."""
-    d = tmp_path_factory.mktemp("plots") / "run"
-    cfg = with_horizon(Config(), HORIZON)
-    run_stack(cfg, record=d, domain_id=230)                  # conftest hands out 100..229, test_bag 231, 232
+def recorded(recorded):
+    """conftest's one recorded run of the session (1.5 s, HORIZON): its bag directory and Config."""
+    d, cfg, _ = recorded
     return d, cfg
 
 
