@@ -4,6 +4,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import rclpy
@@ -97,6 +98,17 @@ def cli(*args, domain=None, timeout=900, **kw):
     if domain is not None:
         env["ROS_DOMAIN_ID"] = str(domain)
     return subprocess.run([*CLI, *map(str, args)], capture_output=True, text=True, timeout=timeout, env=env, **kw)
+
+
+def run_main(capsys, *args):
+    """``has-control *args`` in this process (``has_control.cli.main``), as ``cli`` runs it in a subprocess:
+    an object with returncode (SystemExit's code for the argument parser's refusals), stdout and stderr."""
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as exit_:
+        code = exit_.code
+    cap = capsys.readouterr()
+    return SimpleNamespace(returncode=code, stdout=cap.out, stderr=cap.err)
 
 
 def one_error_line(rc, err, *culprits, code=2, warnings=False):

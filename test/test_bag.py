@@ -5,7 +5,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import cli
+from conftest import cli, run_main
 import rclpy
 import yaml
 
@@ -164,7 +164,7 @@ def test_truncated_bag_yields_complete_chunks_with_a_warning(recorded, tmp_path)
 
 
 @pytest.mark.parametrize("case", ["not-mcap", "bad-yaml", "no-topics", "missing"])
-def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case):
+def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case, capsys):
     d, _, _ = recorded
     if case == "not-mcap":
         target = tmp_path / "x.mcap"
@@ -186,7 +186,7 @@ def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case):
     else:
         target = tmp_path / "nothing"
         expect = "no such bag"
-    r = cli("score", target)
+    r = run_main(capsys, "score", target)
     assert r.returncode == 2
     err = [line for line in r.stderr.splitlines() if line.startswith("has-control: error")]
     assert len(err) == 1 and str(target) in err[0] and expect in err[0], r.stderr
@@ -194,9 +194,9 @@ def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case):
 
 
 @pytest.mark.ros
-def test_the_recorder_never_overwrites(recorded):
+def test_the_recorder_never_overwrites(recorded, capsys):
     d, _, _ = recorded
-    r = cli("stack", "--duration", HORIZON, "--record", d)
+    r = run_main(capsys, "stack", "--duration", HORIZON, "--record", d)
     assert r.returncode == 2 and "exists already" in r.stderr
 
 

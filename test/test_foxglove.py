@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import free_port, run_main
 import websockets
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
@@ -142,13 +142,12 @@ def test_log_time_is_simulation_time_for_every_type():
                    "/sim0/controller/gains": (250_000_000, gains)}
 
 
-def test_a_port_in_use_is_one_line_and_exit_2():
+def test_a_port_in_use_is_one_line_and_exit_2(capsys):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        r = subprocess.run([sys.executable, "-m", "has_control.cli", "stack", "--duration", "2", "--foxglove",
-                            str(port)], capture_output=True, text=True, timeout=60)
+        r = run_main(capsys, "stack", "--duration", "2", "--foxglove", port)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.startswith(f"has-control: error: --foxglove {port}: ") and r.stderr.count("\n") == 1
     assert "in use" in r.stderr
