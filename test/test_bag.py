@@ -1,42 +1,23 @@
 """MCAP bags: what the recorder writes, scoring from it, other readers, bad files, replay."""
 import json
-import os
-import subprocess
-import sys
 import threading
 import time
 
 import numpy as np
 import pytest
+from conftest import cli, run_main
 import rclpy
 import yaml
 
 from has_control.wire import cdr
 from has_control.bag import BagError, read_bag, score_bag, typestore
 from has_control.core.episode import simulate
-from has_control.config import with_horizon
-from has_control.nodes.stack import run_stack
-from has_control.core.params import Config
 
 HORIZON = 1.5
 N = 5000
 
 
-@pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    """One 1.5 s lock-step run through the nodes, recorded (ROS domain of its own)."""
-    d = tmp_path_factory.mktemp("bags") / "run"
-    cfg = with_horizon(Config(), HORIZON)
-    run = run_stack(cfg, record=d, domain_id=231 if os.getpid() % 2 else 232)
-    return d, cfg, run
-
-
-def cli(*args, domain=None):
-    env = dict(os.environ)
-    if domain is not None:
-        env["ROS_DOMAIN_ID"] = str(domain)
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=600, env=env)
+# ``recorded``: conftest's one recorded run of the session (1.5 s, HORIZON) and its StackRun.
 
 
 def test_one_state_and_one_command_per_sample(recorded):
@@ -183,7 +164,7 @@ def test_truncated_bag_yields_complete_chunks_with_a_warning(recorded, tmp_path)
 
 
 @pytest.mark.parametrize("case", ["not-mcap", "bad-yaml", "no-topics", "missing"])
-def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case):
+def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case, capsys):
     d, _, _ = recorded
     if case == "not-mcap":
         target = tmp_path / "x.mcap"
@@ -205,7 +186,7 @@ def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case):
     else:
         target = tmp_path / "nothing"
         expect = "no such bag"
-    r = cli("score", target)
+    r = run_main(capsys, "score", target)
     assert r.returncode == 2
     err = [line for line in r.stderr.splitlines() if line.startswith("has-control: error")]
     assert len(err) == 1 and str(target) in err[0] and expect in err[0], r.stderr
@@ -213,9 +194,9 @@ def test_bad_files_get_one_line_naming_the_file(recorded, tmp_path, case):
 
 
 @pytest.mark.ros
-def test_the_recorder_never_overwrites(recorded):
+def test_the_recorder_never_overwrites(recorded, capsys):
     d, _, _ = recorded
-    r = cli("stack", "--duration", HORIZON, "--record", d)
+    r = run_main(capsys, "stack", "--duration", HORIZON, "--record", d)
     assert r.returncode == 2 and "exists already" in r.stderr
 
 

@@ -1,9 +1,11 @@
-"""has-control simulate: JSON keys, errors as one line and exit status 2."""
+"""has-control simulate: JSON keys, errors as one line and exit status 2 (in-process, and once on a real
+interpreter: the entry point prints the one line, no traceback)."""
 import json
 import subprocess
 import sys
 
 import pytest
+from conftest import run_main
 
 from test_episode import PINNED
 
@@ -46,8 +48,8 @@ def test_trace_and_plot_files(tmp_path):
     (["--gains", "150", "abc", "162"], "--gains: K2 = 'abc'"),
     (["--duration", "0.9"], "metrics.skip"),
 ])
-def test_bad_arguments_fail_in_one_line(args, culprit):
-    r = run("simulate", *args)
+def test_bad_arguments_fail_in_one_line(args, culprit, capsys):
+    r = run_main(capsys, "simulate", *args)
     assert r.returncode == 2
     assert culprit in r.stderr and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import free_port
 
 import has_control
 from has_control.tuning.dask_evaluator import (
@@ -229,12 +230,6 @@ def test_a_restarted_local_worker_gets_the_configs_and_reruns_the_task(tmp_path)
     assert np.array_equal(first, evaluate_configs(gains, cfgs)) and np.array_equal(second, first)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _wait_for_port(port: int, proc: subprocess.Popen, timeout: float = 120.0) -> None:
     """Until something accepts connections on 127.0.0.1:port (the scheduler has started)."""
     deadline = time.monotonic() + timeout
@@ -280,7 +275,7 @@ def dask_processes(tmp_path, request):
         for proc in reversed(procs):
             _stop(proc)
     request.addfinalizer(stop_all)
-    port = _free_port()
+    port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     scheduler = start("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"])
     _wait_for_port(port, scheduler)

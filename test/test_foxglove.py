@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import free_port, run_main
 import websockets
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
@@ -28,12 +29,6 @@ pytestmark = [pytest.mark.ros]
 SUBPROTOCOL = "foxglove.sdk.v1"        # foxglove-sdk's name for foxglove.websocket.v1 (which it refuses)
 RUN = {"/state", "/command", "/clock", "/controller/controller_state", "/controller/reference",
        "/controller/gains"}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 async def _connect(port: int, deadline: float):
@@ -84,7 +79,7 @@ async def _read_stack(port: int, n: int, timeout: float):
 def test_stack_serves_the_state_live_as_ros2msg_cdr(domain_id):
     """``has-control stack --foxglove PORT``: a client subscribes to /state and
     decodes JointState messages whose stamps advance by 0.3 ms."""
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
     stack = subprocess.Popen([sys.executable, "-m", "has_control.cli", "stack", "--duration", "2", "--realtime",
                               "--foxglove", str(port)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -147,20 +142,19 @@ def test_log_time_is_simulation_time_for_every_type():
                    "/sim0/controller/gains": (250_000_000, gains)}
 
 
-def test_a_port_in_use_is_one_line_and_exit_2():
+def test_a_port_in_use_is_one_line_and_exit_2(capsys):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        r = subprocess.run([sys.executable, "-m", "has_control.cli", "stack", "--duration", "2", "--foxglove",
-                            str(port)], capture_output=True, text=True, timeout=60)
+        r = run_main(capsys, "stack", "--duration", "2", "--foxglove", port)
     assert r.returncode == 2 and r.stdout == ""
     assert r.stderr.startswith(f"has-control: error: --foxglove {port}: ") and r.stderr.count("\n") == 1
     assert "in use" in r.stderr
 
 
 def test_foxglove_port_parameter_serves_the_nodes_topics(context):  # noqa: F811
-    port = _free_port()
+    port = free_port()
     node = ControllerNode(context=context, parameter_overrides=[Parameter("foxglove_port", value=port)])
     try:
         assert node.live_view.port == port

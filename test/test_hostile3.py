@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import stopped_session
+from conftest import one_line, stopped_session
 import yaml
 
 from has_control.bag import PARAMETERS_KEY, BagError, BagWriter, parameters_json, read_bag, write_trace
@@ -34,19 +34,6 @@ from has_control.core.reference import check_road_memory
 from has_control.core.params import N_REFERENCE, REF_TERMS, Config, Episode, Reference
 
 NOM = "scenarios:\n  nominal: {}\n  heavy: {plant.mass: 1800.0}\n"
-
-
-def one_line(capsys, argv, *culprits, code=2, warnings=False):
-    """``argv`` ends with status ``code`` and one line naming ``culprits``
-    (``warnings``: besides lines "warning: ..." that say what was found)."""
-    rc = main([str(a) for a in argv])
-    cap = capsys.readouterr()
-    assert rc == code, cap.err
-    lines = [x for x in cap.err.strip().splitlines() if not (warnings and "has-control: warning:" in x)]
-    assert len(lines) == 1 and "Traceback" not in cap.err, cap.err
-    for c in culprits:
-        assert str(c) in cap.err, cap.err
-    return cap.err
 
 
 # --- 1, 12, 13: outputs -----------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import one_line
 
 from has_control.bag import PARAMETERS_KEY, BagError, BagWriter, parameters_json, read_bag, write_trace
 from has_control.cli import main
@@ -26,14 +27,6 @@ from has_control.tuning.landscape import MAX_EPISODES, check_plan, planned_episo
 from has_control.wire import cdr
 
 CLI = [sys.executable, "-m", "has_control.cli"]
-
-
-def one_line(capsys, argv, *culprits, code=2):
-    assert main(argv) == code
-    err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
-    assert all(c in err for c in culprits), err
-    return err
 
 
 # --- planned work ---------------------------------------------------------------------------------

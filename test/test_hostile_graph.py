@@ -21,7 +21,7 @@ from has_control.nodes.plant_node import PlantNode
 from has_control.nodes.stack import run_stack
 from has_control.core.params import Config
 
-from test_nodes import _spin_until as _spin
+from conftest import spin_until
 
 pytestmark = [pytest.mark.ros]
 
@@ -38,20 +38,20 @@ def test_malformed_and_non_finite_messages_are_counted_and_ignored(context):
     to_controller = evil.create_publisher(JointState, "state", CONTROL_QOS)
     for n in (plant, controller, evil):
         ex.add_node(n)
-    assert _spin(ex, lambda: to_plant.get_subscription_count() and to_controller.get_subscription_count(), 10)
+    assert spin_until(ex, lambda: to_plant.get_subscription_count() and to_controller.get_subscription_count(), 10)
     cfg = Config()
     nan_state = state_message(0, 300_000, [0.0, math.nan, 1e6, 1e6], cfg.actuator)
     for msg in (JointState(), JointState(name=["valve"], position=[math.nan]), JointState(name=["valve"])):
         to_plant.publish(msg)                            # keep-last 1: one at a time
-        _spin(ex, lambda: False, 0.1)
+        spin_until(ex, lambda: False, 0.1)
     for msg in (JointState(), nan_state, JointState(name=["x"], position=[1.0])):
         to_controller.publish(msg)
-        _spin(ex, lambda: False, 0.1)
+        spin_until(ex, lambda: False, 0.1)
     assert plant.malformed_commands == 3 and controller.malformed_states == 3
     assert plant.sample == 0 and np.all(np.isfinite(plant.x)) and controller.a1_hat == 2600.0
-    assert _spin(ex, plant.connected, 10)
+    assert spin_until(ex, plant.connected, 10)
     plant.start()
-    assert _spin(ex, lambda: plant.finished, 60)
+    assert spin_until(ex, lambda: plant.finished, 60)
     ref = simulate(with_horizon(cfg, 1.5))
     np.testing.assert_array_equal(controller.trace, ref.data[:2000])
     ex.shutdown()

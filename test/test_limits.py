@@ -8,29 +8,10 @@ import sys
 import time
 
 import pytest
+from conftest import argparse_error, one_line
 
-from has_control.cli import main
 
 HEAD = "/**:\n  ros__parameters:\n"
-
-
-def one_line_error(capsys, argv, *culprits, code=2):
-    rc = main(argv)
-    err = capsys.readouterr().err
-    assert rc == code, err
-    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
-    for c in culprits:
-        assert c in err, err
-    return err
-
-
-def argparse_error(capsys, argv, *culprits):
-    with pytest.raises(SystemExit) as info:
-        main(argv)
-    err = capsys.readouterr().err
-    assert info.value.code == 2 and len(err.strip().splitlines()) == 1, err
-    for c in culprits:
-        assert c in err, err
 
 
 @pytest.mark.parametrize("argv, culprits", [
@@ -45,7 +26,7 @@ def argparse_error(capsys, argv, *culprits):
     (["simulate", "--gains", "inf", "150", "150"], ["--gains: K1 = 'inf'"]),
 ])
 def test_numbers_out_of_range_are_one_line(capsys, argv, culprits):
-    one_line_error(capsys, argv, *culprits)
+    one_line(capsys, argv, *culprits)
 
 
 @pytest.mark.parametrize("argv, culprits", [
@@ -102,7 +83,7 @@ def test_hostile_config_files_are_one_line_naming_the_file(capsys, tmp_path, cas
     body, culprits = CONFIGS[case]
     p = _yaml(tmp_path, f"{case}.yaml", body)
     t0 = time.perf_counter()
-    one_line_error(capsys, ["tune", "--iterations", "1", "--particles", "2", "--config", str(p)], str(p), *culprits)
+    one_line(capsys, ["tune", "--iterations", "1", "--particles", "2", "--config", str(p)], str(p), *culprits)
     assert time.perf_counter() - t0 < 5
 
 
@@ -113,9 +94,9 @@ def test_fifo_device_directory_and_oversize_file_are_refused_without_reading(cap
     big.write_text(HEAD + "#" * (2 << 20))
     for path, why in ((fifo, "not a regular file"), ("/dev/zero", "not a regular file"),
                       (tmp_path, "a directory"), (big, "larger than the limit")):
-        one_line_error(capsys, ["simulate", "--config", str(path)], str(path), why)
-        one_line_error(capsys, ["bag-info", str(path)] if path != tmp_path else ["bag-info", str(fifo)],
-                       "not a regular file" if path != big else "MCAP")
+        one_line(capsys, ["simulate", "--config", str(path)], str(path), why)
+        one_line(capsys, ["bag-info", str(path)] if path != tmp_path else ["bag-info", str(fifo)],
+                 "not a regular file" if path != big else "MCAP")
 
 
 @pytest.mark.ros

@@ -8,12 +8,13 @@ import sys
 import time
 
 import pytest
+from conftest import free_port
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from has_control.nodes.live_process import SLOTS, LiveViewProcess
 from has_control.wire.topics import STATE_LAYOUT
-from test_foxglove import _advertised, _connect, _free_port, _message_data, _subscribe
+from test_foxglove import _advertised, _connect, _message_data, _subscribe
 
 pytestmark = [pytest.mark.ros]
 
@@ -52,7 +53,7 @@ def test_the_writer_never_waits_for_the_viewer_which_loses_the_oldest():
 
 
 def test_the_url_comes_before_the_run_and_the_run_waits_for_a_client(domain_id):
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
     stack = subprocess.Popen([sys.executable, "-m", "has_control.cli", "stack", "--duration", "1.5", "--foxglove",
                               str(port), "--foxglove-wait", "60"], env=env, stdout=subprocess.PIPE,

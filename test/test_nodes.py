@@ -4,6 +4,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import spin_until
 import rclpy
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
@@ -113,13 +114,6 @@ def test_reset_services_restore_the_initial_state(context):
         n.destroy_node()
 
 
-def _spin_until(ex, cond, seconds):
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and not cond():
-        ex.spin_once(timeout_sec=0.01)
-    return cond()
-
-
 def test_killing_the_controller_mid_run_trips_the_fail_safe_and_a_restart_resumes(context, domain_id):
     """A controller process dies mid-run (SIGKILL): the plant centres the valve and
     runs on; a new controller process takes over."""
@@ -135,19 +129,19 @@ def test_killing_the_controller_mid_run_trips_the_fail_safe_and_a_restart_resume
     first = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     second = None
     try:
-        assert _spin_until(ex, plant.connected, 60)
+        assert spin_until(ex, plant.connected, 60)
         plant.start()
-        assert _spin_until(ex, lambda: plant.sample >= 500, 60) and plant.failsafe_events == 0
+        assert spin_until(ex, lambda: plant.sample >= 500, 60) and plant.failsafe_events == 0
         first.kill()
         first.wait()
         killed_at = plant.sample
-        assert _spin_until(ex, lambda: plant.failsafe_events >= 10, 10)
+        assert spin_until(ex, lambda: plant.failsafe_events >= 10, 10)
         assert plant._in_outage and plant.sample > killed_at            # the run continues
         outage = [row[-1] for row in plant.process.log[killed_at + 2:]]
         assert outage and all(u == 0.0 for u in outage)                  # valve centred
         second = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         back = plant.sample
-        assert _spin_until(ex, lambda: plant.sample >= back + 500 and not plant._in_outage, 60)
+        assert spin_until(ex, lambda: plant.sample >= back + 500 and not plant._in_outage, 60)
         resumed = [row[-1] for row in plant.process.log[-100:]]
         assert all(u != 0.0 for u in resumed)                            # under control again
         assert abs(plant.x[0]) < 0.2                                     # and still sane
@@ -180,13 +174,13 @@ def _realtime_run(context, failsafe_samples: int):
     for n in (plant, driver):
         ex.add_node(n)
     plant.process.log = []
-    assert _spin_until(ex, plant.connected, 10)
+    assert spin_until(ex, plant.connected, 10)
     pub.publish(JointState(name=["valve"], position=[1e-5]))      # stamped sample 0, before the start
-    assert _spin_until(ex, lambda: plant.command_sample == 0, 10)
+    assert spin_until(ex, lambda: plant.command_sample == 0, 10)
     plant.start()
     plant.run_realtime(ex)                                       # paced on this thread, which owns ex
     assert plant.finished
-    _spin_until(ex, lambda: False, 0.2)
+    spin_until(ex, lambda: False, 0.2)
     u = np.array([row[-1] for row in plant.process.log])
     stats, events = plant.realtime_stats, plant.failsafe_events
     ex.shutdown()
@@ -221,10 +215,10 @@ def test_controller_follows_sim_time_from_the_plant_clock(context):
     controller = ControllerNode(context=context, parameter_overrides=[Parameter("use_sim_time", value=True)])
     for n in (plant, controller):
         ex.add_node(n)
-    assert _spin_until(ex, plant.connected, 10)
+    assert spin_until(ex, plant.connected, 10)
     plant.start()
-    assert _spin_until(ex, lambda: plant.finished, 60)
-    _spin_until(ex, lambda: False, 0.3)
+    assert spin_until(ex, lambda: plant.finished, 60)
+    spin_until(ex, lambda: False, 0.3)
     assert controller.get_clock().now().nanoseconds == (cfg.episode.samples - 1) * 300_000
     ex.shutdown()
     for n in (plant, controller):
@@ -282,7 +276,7 @@ def test_killing_the_controller_mid_run_in_realtime_mode(context, domain_id):
         marks["restarted"] = plant.sample
         procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
     try:
-        assert _spin_until(ex, plant.connected, 60)
+        assert spin_until(ex, plant.connected, 60)
         threading.Thread(target=fault, daemon=True).start()
         plant.start()
         stats = plant.run_realtime(ex)

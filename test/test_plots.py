@@ -9,6 +9,7 @@ from pathlib import Path
 import matplotlib
 import numpy as np
 import pytest
+from conftest import cli, run_main
 
 from has_control.bag import BagWriter, read_bag, recorded_run, score_bag, write_trace
 from has_control.bag.series import run_series
@@ -31,17 +32,10 @@ UNIT = re.compile(r"\[[^\]]+\]$")
 
 
 @pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    """One 1.5 s lock-step run through the nodes, recorded as ``stack --record`` records it."""
-    d = tmp_path_factory.mktemp("plots") / "run"
-    cfg = with_horizon(Config(), HORIZON)
-    run_stack(cfg, record=d, domain_id=230)                  # conftest hands out 100..229, test_bag 231, 232
+def recorded(recorded):
+    """conftest's one recorded run of the session (1.5 s, HORIZON): its bag directory and Config."""
+    d, cfg, _ = recorded
     return d, cfg
-
-
-def cli(*args):
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=600)
 
 
 def _rewrite(src, dst, keep=lambda topic, i: True, custom=True, extra=()):
@@ -285,7 +279,7 @@ def test_cli_overlays_several_bags_named_by_their_gains(recorded, tmp_path):
     ("window-outside", "--window 5 6:"),
 ])
 @pytest.mark.ros
-def test_bad_input_is_one_line_and_exit_2_and_no_figure(recorded, tmp_path, case, culprit):
+def test_bad_input_is_one_line_and_exit_2_and_no_figure(recorded, tmp_path, case, culprit, capsys):
     d, _ = recorded
     out = tmp_path / "f.png"
     args = {"not-a-bag": [tmp_path / "x.mcap"], "no-state": [tmp_path / "nostate"],
@@ -293,7 +287,7 @@ def test_bad_input_is_one_line_and_exit_2_and_no_figure(recorded, tmp_path, case
             "window-outside": [d, "--window", "5", "6"]}[case]
     (tmp_path / "x.mcap").write_text("hello")
     _rewrite(d, tmp_path / "nostate", keep=lambda topic, i: topic != "/state")
-    r = cli("plot", *args, *([] if "--out" in args else ["--out", out]))
+    r = run_main(capsys, "plot", *args, *([] if "--out" in args else ["--out", out]))
     assert r.returncode == 2 and culprit in r.stderr and "Traceback" not in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert not out.exists() and not (tmp_path / "f.xyz").exists()

@@ -10,8 +10,9 @@ import time
 
 import numpy as np
 import pytest
+from conftest import cli
 
-from has_control.bag import BagError, read_bag
+from has_control.bag import BagError, read_bag, score_bag
 from has_control.config import CONFIG_DIR, Scenario, load_scenarios, with_horizon
 from has_control.core.scenarios import parse_aggregate
 from has_control.core.episode import evaluate
@@ -32,11 +33,6 @@ LAGGY = (("plant.valve_time_constant", 1.0e-3), ("noise.position", 1.0e-6), ("no
 
 def short(k):
     return evaluate(k, SHORT)
-
-
-def cli(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=900, **kw)
 
 
 def _same(a, b) -> bool:
@@ -117,6 +113,11 @@ def test_a_session_killed_mid_way_resumes_to_the_same_result(tmp_path):
     a.pop("seconds"), b.pop("seconds")
     assert a["variant"] == "cma-restarts" and a == b                  # the same answer, bit for bit
     assert read_bag(d / SESSION).count(ITERATION) == a["iterations"] > done
+    bag = read_bag(d / SESSION)
+    assert bag.complete
+    assert score_bag(d / SESSION)[0].J == a["J"]           # the validation run of the best gains
+    again = cli("tune", "--resume", d)
+    assert again.returncode == 2 and "finished already" in again.stderr
 
 
 @pytest.mark.cluster

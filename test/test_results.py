@@ -9,6 +9,7 @@ import shutil
 import time
 
 import pytest
+from conftest import one_error_line
 
 from has_control.cli import main
 from has_control.common.errors import HasControlError
@@ -21,12 +22,6 @@ def run(capsys, *argv):
     rc = main([str(a) for a in argv])
     cap = capsys.readouterr()
     return rc, cap.out, cap.err
-
-
-def one_line(rc, err, *culprits):
-    assert rc == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    for c in culprits:
-        assert c in err, err
 
 
 @pytest.fixture(scope="module")
@@ -45,11 +40,11 @@ def test_tune_out_never_replaces_a_session_without_force(finished, tmp_path, cap
     before = (copy / "tune.json").read_bytes()
     t0 = time.perf_counter()
     rc, _, err = run(capsys, *TUNE, "--out", copy)
-    one_line(rc, err, str(copy / "session"), "--force")
+    one_error_line(rc, err, str(copy / "session"), "--force")
     assert time.perf_counter() - t0 < 2 and (copy / "tune.json").read_bytes() == before
     (copy / "session").rename(copy / "elsewhere")          # tune.json alone is protected as well
     rc, _, err = run(capsys, *TUNE, "--out", copy)
-    one_line(rc, err, str(copy / "tune.json"))
+    one_error_line(rc, err, str(copy / "tune.json"))
     rc, out, err = run(capsys, *TUNE, "--out", copy, "--force", "--json")
     assert rc == 0, err
     assert json.loads((copy / "tune.json").read_text())["gains"] == result["gains"]
@@ -64,7 +59,7 @@ def test_reproduce_out_is_checked_before_the_work_starts(tmp_path, capsys):
     for out, why in ((f, "not a directory"), (full, "--force")):
         t0 = time.perf_counter()
         rc, _, err = run(capsys, "reproduce", "--seeds", "1", "--particles", "2", "--iterations", "1", "--out", out)
-        one_line(rc, err, str(out), why)
+        one_error_line(rc, err, str(out), why)
         assert time.perf_counter() - t0 < 2
     assert f.read_text() == (full / "report.md").read_text() == "someone's report\n"
 
@@ -76,9 +71,9 @@ def test_a_second_resume_on_a_locked_session_is_refused(finished, tmp_path, caps
     lock = DirectoryLock(copy, ".lock", "the tuning session")      # as a running tune holds it
     try:
         rc, _, err = run(capsys, "tune", "--resume", copy)
-        one_line(rc, err, str(copy), "in use by another process")
+        one_error_line(rc, err, str(copy), "in use by another process")
         rc, _, err = run(capsys, *TUNE, "--out", copy, "--force")
-        one_line(rc, err, "in use by another process")
+        one_error_line(rc, err, "in use by another process")
     finally:
         lock.release()
     assert (copy / "session").is_dir() and (copy / "tune.json").exists()   # nothing touched
@@ -107,7 +102,7 @@ def test_resume_finishes_a_session_whose_final_writes_were_interrupted(finished,
     assert json.loads((copy / "tune.json").read_text()) == got
     assert (copy / "gains.png").exists() and (copy / "convergence.png").exists()
     rc, _, err = run(capsys, "tune", "--resume", copy)
-    one_line(rc, err, "finished already")
+    one_error_line(rc, err, "finished already")
 
 
 def test_write_atomic_keeps_the_old_file_and_names_the_path(tmp_path):
@@ -136,4 +131,4 @@ def test_a_full_disk_under_the_bag_writer_names_the_bag(tmp_path, capsys, monkey
         w.sync()
     monkeypatch.setattr(bag_info, "run", record_to_a_full_disk)
     rc, _, err = run(capsys, "bag-info", "x")
-    one_line(rc, err, str(tmp_path / "bag" / "bag.mcap"), "No space left on device")
+    one_error_line(rc, err, str(tmp_path / "bag" / "bag.mcap"), "No space left on device")

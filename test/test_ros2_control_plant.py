@@ -4,10 +4,10 @@ third (#30 items 2 and 4)."""
 import os
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
+from conftest import spin_until
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 
@@ -47,13 +47,6 @@ print(len(seen), count[0], flush=True)
 """
 
 
-def _spin_until(ex, cond, seconds):
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and not cond():
-        ex.spin_once(timeout_sec=0.01)
-    return cond()
-
-
 @pytest.mark.parametrize("interface, horizon", [
     ("ros2_control", 1.5),
     pytest.param("ros2_control", 10.0, marks=pytest.mark.slow),
@@ -78,7 +71,7 @@ def test_plant_and_controller_in_two_processes_give_the_library_run_and_a_record
     ex.add_node(plant)
     try:
         assert recorder.stdout.readline().strip() == "ready", recorder.stderr.read()
-        assert _spin_until(ex, lambda: plant.connected() and plant.state_pub.get_subscription_count() >= 2, 120)
+        assert spin_until(ex, lambda: plant.connected() and plant.state_pub.get_subscription_count() >= 2, 120)
         plant.start()
         plant.run(ex)
         assert plant.finished and plant.sample == n

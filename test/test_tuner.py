@@ -1,27 +1,17 @@
-"""The tuner node and tuning sessions: graph = batch, lanes, divergence, resume after SIGKILL."""
-import json
+"""The tuner node and tuning sessions: graph = batch, lanes, divergence, a resume without a session."""
 import os
-import signal
 import subprocess
 import sys
-import time
 
 import pytest
+from conftest import cli, run_main
 
-from has_control.bag import BagError, read_bag, score_bag
+from has_control.bag import read_bag, score_bag
 from has_control.config import with_horizon
 from has_control.nodes.stack import run_tuning_stack
 from has_control.core.params import Config
 from has_control.tuning.session import ITERATION, SESSION
 from has_control.tuning.tuner import load_tuning, tune
-
-
-def cli(*args, domain=None, **kw):
-    env = dict(os.environ)
-    if domain is not None:
-        env["ROS_DOMAIN_ID"] = str(domain)
-    return subprocess.run([sys.executable, "-m", "has_control.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=900, env=env, **kw)
 
 
 @pytest.mark.ros
@@ -66,45 +56,8 @@ def test_diverging_candidates_score_inf_and_the_tuner_carries_on(domain_id, tmp_
     assert out["J"] == "inf" and out["evaluations"] == 4 and out["iterations"] == 2
 
 
-@pytest.mark.system
-@pytest.mark.parametrize("iterations", [40])
-def test_a_session_killed_mid_way_resumes_to_the_same_result(tmp_path, iterations):
-    args = ["tune", "--variant", "pso-cp-tvac", "--particles", 40, "--iterations", iterations, "--json"]
-    full = cli(*args)
-    assert full.returncode == 0, full.stderr
-    d = tmp_path / "session"
-    env = dict(os.environ)
-    p = subprocess.Popen([sys.executable, "-m", "has_control.cli", *map(str, args), "--out", d],
-                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
-    done = 0
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and p.poll() is None:
-        time.sleep(0.05)
-        try:
-            done = read_bag(d / SESSION, topics=[ITERATION], on_warning=lambda m: None).count(ITERATION)
-        except BagError:                   # not created yet, or its first bytes not yet on disk
-            continue
-        if done >= 5:
-            break
-    assert p.poll() is None, "the session ended before it could be killed"
-    os.kill(p.pid, signal.SIGKILL)
-    p.wait()
-    assert 5 <= done < iterations
-    resumed = cli("tune", "--resume", d, "--json")
-    assert resumed.returncode == 0, resumed.stderr
-    assert "resuming" in resumed.stderr
-    a, b = json.loads(full.stdout), json.loads(resumed.stdout)
-    a.pop("seconds"), b.pop("seconds")
-    assert a == b                                          # the same final answer, bit for bit
-    bag = read_bag(d / SESSION)
-    assert bag.complete and bag.count(ITERATION) == iterations
-    assert score_bag(d / SESSION)[0].J == a["J"]           # the validation run of the best gains
-    again = cli("tune", "--resume", d)
-    assert again.returncode == 2 and "finished already" in again.stderr
-
-
-def test_resume_without_a_session_is_one_line(tmp_path):
-    r = cli("tune", "--resume", tmp_path)
+def test_resume_without_a_session_is_one_line(tmp_path, capsys):
+    r = run_main(capsys, "tune", "--resume", tmp_path)
     assert r.returncode == 2 and "no session bag to resume" in r.stderr and "Traceback" not in r.stderr
 
 

@@ -3,6 +3,7 @@ batch evaluator without any plant or controller."""
 import time
 
 import pytest
+from conftest import spin_until
 import rclpy
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
@@ -24,20 +25,13 @@ def _tuner(context, **swarm):
     return cfg, TunerNode(context=context, parameter_overrides=params)
 
 
-def _spin_until(ex, cond, seconds):
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and not cond():
-        ex.spin_once(timeout_sec=0.01)
-    return cond()
-
-
 def test_the_batch_evaluator_needs_no_plant_or_controller(context):
     cfg, tuner = _tuner(context, variant="pso-cp-tvac", iterations=2, particles=3)
     ex = EventsExecutor(context=context)
     ex.add_node(tuner)
     try:
         tuner.start()
-        assert _spin_until(ex, tuner.done.is_set, 120)
+        assert spin_until(ex, tuner.done.is_set, 120)
     finally:
         ex.shutdown()
         tuner.destroy_node()
@@ -59,20 +53,20 @@ def test_start_cancel_and_status_through_services(context):
         cli = client.create_client(Trigger, f"/tuner/{name}")
         assert cli.wait_for_service(timeout_sec=10.0)
         fut = cli.call_async(Trigger.Request())
-        assert _spin_until(ex, fut.done, 10)
+        assert spin_until(ex, fut.done, 10)
         return fut.result()
     try:
         assert call("status").message.startswith("idle")
         assert not call("cancel").success                                 # nothing to cancel
         assert call("start").success
-        assert _spin_until(ex, lambda: "iteration" in call("status").message, 60)
+        assert spin_until(ex, lambda: "iteration" in call("status").message, 60)
         assert not call("start").success                                  # one session at a time
         assert call("cancel").success
-        assert _spin_until(ex, tuner.done.is_set, 30)
+        assert spin_until(ex, tuner.done.is_set, 30)
         assert call("status").message == "cancelled" and tuner.result is None and tuner.error is None
         assert call("start").success                                      # and again
-        assert _spin_until(ex, lambda: "iteration" in call("status").message, 60)
-        assert call("cancel").success and _spin_until(ex, tuner.done.is_set, 30)
+        assert spin_until(ex, lambda: "iteration" in call("status").message, 60)
+        assert call("cancel").success and spin_until(ex, tuner.done.is_set, 30)
     finally:
         ex.shutdown()
         tuner.destroy_node()
@@ -83,7 +77,7 @@ def _service(ex, client, name):
     cli = client.create_client(Trigger, name)
     assert cli.wait_for_service(timeout_sec=10.0)
     fut = cli.call_async(Trigger.Request())
-    assert _spin_until(ex, fut.done, 10)
+    assert spin_until(ex, fut.done, 10)
     return fut.result()
 
 
@@ -118,11 +112,11 @@ def test_a_valid_change_between_sessions_takes_effect_at_the_next_start(context)
     ex = EventsExecutor(context=context)
     ex.add_node(tuner)
     try:
-        assert tuner.start() is None and _spin_until(ex, tuner.done.is_set, 120)
+        assert tuner.start() is None and spin_until(ex, tuner.done.is_set, 120)
         assert tuner.result["iterations"] == 2
         assert tuner.set_parameters([Parameter("swarm.iterations", value=3),
                                      Parameter("swarm.upper", value=[900, 700, 700])])[0].successful  # whole numbers
-        assert tuner.start() is None and _spin_until(ex, tuner.done.is_set, 120)
+        assert tuner.start() is None and spin_until(ex, tuner.done.is_set, 120)
     finally:
         ex.shutdown()
         tuner.destroy_node()
@@ -144,7 +138,7 @@ def test_record_without_lanes_writes_the_result_and_a_second_start_needs_force(c
                                      Parameter("lane_timeout", value=30.0)])[0].successful
         t0 = time.monotonic()
         assert _service(ex, client, "/tuner/start").success
-        assert _spin_until(ex, tuner.done.is_set, 120)
+        assert spin_until(ex, tuner.done.is_set, 120)
         assert time.monotonic() - t0 < 9.5 and tuner.error is None         # optional lanes: 2 s, not 10
         assert (rec / "tune.json").is_file() and (rec / "gains.yaml").is_file()
         again = _service(ex, client, "/tuner/start")                     # the session is there: refused now
@@ -155,7 +149,7 @@ def test_record_without_lanes_writes_the_result_and_a_second_start_needs_force(c
         assert not nothing.success and "no session bag to resume" in nothing.message
         assert tuner.set_parameters([Parameter("resume", value=""), Parameter("force", value=True)])[0].successful
         assert _service(ex, client, "/tuner/start").success
-        assert _spin_until(ex, tuner.done.is_set, 120) and tuner.error is None
+        assert spin_until(ex, tuner.done.is_set, 120) and tuner.error is None
     finally:
         ex.shutdown()
         tuner.destroy_node()
@@ -195,7 +189,7 @@ def test_graph_validation_against_the_library_flags_a_lane_that_differs(context,
         # the same controller back on the tuner's model: graph = library, within the tolerance
         assert controller.set_parameters([Parameter("actuator.mass", value=1500.0)])[0].successful
         assert tuner.set_parameters([Parameter("record", value="")])[0].successful
-        assert tuner.start() is None and _spin_until(ex, tuner.done.is_set, 120)
+        assert tuner.start() is None and spin_until(ex, tuner.done.is_set, 120)
         again = tuner.result
     finally:
         ex.shutdown()

@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import run_main
 
 from has_control.core.episode import evaluate
 from has_control.common.errors import ConfigError
@@ -65,9 +66,8 @@ def test_tune_cli_json_is_reproducible_and_has_the_documented_keys():
     assert outs[0]["evaluations"] == 32 and len(outs[0]["history"]) == 4
 
 
-def test_tune_cli_rejects_bad_numbers_in_one_line():
-    r = subprocess.run([sys.executable, "-m", "has_control.cli", "tune", "--particles", "0"],
-                       capture_output=True, text=True)
+def test_tune_cli_rejects_bad_numbers_in_one_line(capsys):
+    r = run_main(capsys, "tune", "--particles", "0")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
     assert "--particles" in r.stderr
 

@@ -20,13 +20,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import free_port
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
 
 from has_control.nodes.foxglove import NAMED, _COLUMNS
 from has_control.wire.topics import (CONTROLLER_STATE, CONTROLLER_STATE_COLUMNS, GAINS, GAINS_COLUMNS, RUN_TOPICS,
                                      STATE_NAMES)
-from test_foxglove import _connect, _free_port, _message_data
+from test_foxglove import _connect, _message_data
 
 pytestmark = [pytest.mark.ros]
 
@@ -165,7 +166,7 @@ def _values(messages, field, index):
 
 
 def test_every_panel_of_the_shipped_layout_receives_data_from_stack_foxglove(domain_id):
-    port = _free_port()
+    port = free_port()
     stack = _stack(port, domain_id, "--duration", "20", "--foxglove-wait", "90")   # several wall seconds of reports
     try:
         read = asyncio.run(_read_every_panel(port, 150))
@@ -215,7 +216,7 @@ def _wait_serving(stack) -> None:
 def test_a_killed_viewer_costs_the_run_nothing_and_no_ring_has_a_name(domain_id):
     """SIGKILL to the viewer mid-run: exit 0, the JSON result, one warning line;
     the rings are memfd (nothing under /dev/shm in either process's maps)."""
-    port = _free_port()
+    port = free_port()
     stack = _stack(port, domain_id, "--duration", "8", "--json")
     try:
         _wait_serving(stack)
@@ -236,7 +237,7 @@ def test_a_killed_viewer_costs_the_run_nothing_and_no_ring_has_a_name(domain_id)
 
 
 def test_a_killed_stack_takes_its_viewer_and_leaves_no_shared_memory(domain_id):
-    port = _free_port()
+    port = free_port()
     stack = _stack(port, domain_id, "--duration", "60")
     try:
         _wait_serving(stack)
@@ -260,7 +261,7 @@ def test_a_killed_stack_takes_its_viewer_and_leaves_no_shared_memory(domain_id):
 def test_ctrl_c_during_a_served_stack_is_one_line_and_130(domain_id):
     """SIGINT to the stack's process group (as a terminal sends it) mid-run: the viewer
     is in a session of its own, the stack closes it: "interrupted", 130."""
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain_id)}
     stack = subprocess.Popen([sys.executable, "-m", "has_control.cli", "stack", "--duration", "60", "--foxglove",
                               str(port)], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
