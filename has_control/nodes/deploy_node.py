@@ -34,7 +34,7 @@ from has_control.core.cost import score_arrays
 from has_control.core.episode import Col, simulate
 from has_control.core.params import Config
 from has_control.deploy.guarded import DeploymentPlan, gap_words
-from has_control.deploy.stepping import Deployer
+from has_control.deploy.stepping import Comparison, Deployer
 from has_control.deploy.watchdog import WatchdogLimits
 from has_control.deploy.watched import Pairing, Watched, gains_of, internals_of
 from has_control.wire.codec import float64_array_layout
@@ -70,6 +70,7 @@ class NodeDeployment:
     predicted_horizon: float | None = None
     final_gains: tuple = ()
     bag: Path | None = None
+    comparison: Comparison | None = None       # what the plan's final comparison measured and kept
 
     def fallback_latency(self) -> float | None:
         """Seconds of the loop from the sample that tripped to the first sample on the fallback gains."""
@@ -104,6 +105,8 @@ class NodeDeployment:
                        f"({self.tripped[1]}); fallback in effect "
                        + (f"{lat * 1e3:.1f} ms later" if lat is not None else "not seen")
                        + f"; final gains ({', '.join(f'{k:.2f}' for k in self.final_gains)})")
+        if self.comparison is not None:
+            out.append(self.comparison.line(self.plan.steps))
         g = self.gap
         if g is not None:
             out.append(f"measured against predicted J: {g:.3g}x ({gap_words(g)}; "
@@ -127,6 +130,7 @@ class NodeDeployment:
                 "changes": [{"sample": a, "row": r, "why": w, "took_effect": t} for a, r, w, t in self.changes],
                 "predicted_J": self.predicted_J, "gap": f(self.gap) if self.gap is not None else None,
                 "gap_over_2x": bool(self.gap is not None and self.gap > 2.0),
+                "comparison": self.comparison.as_json() if self.comparison is not None else None,
                 "bag": str(self.bag) if self.bag else None}
 
 
@@ -147,7 +151,8 @@ class DeployNode(Node):
         self.step_ns = int(round(self.dt * 1e9))
         self.schedule = plan.schedule()
         self.deployer = Deployer(self.schedule, plan.switches(self.dt), limits, self.dt,
-                                 end=int(round(plan.duration() / self.dt)))
+                                 end=int(round(plan.duration() / self.dt)), compare=plan.compare(self.dt),
+                                 ep=cfg.episode.as_array())
         self.pairing = Pairing(stamped=watched.layout == "has_control")
         self.params = AsyncParameterClient(self, watched.controller)
         self.result = NodeDeployment(plan, self.dt, predicted_J=predicted_J, predicted_horizon=predicted_horizon)
@@ -235,12 +240,14 @@ class DeployNode(Node):
         ep = self.cfg.episode.as_array()
         res.J = d.cost(ep)
         res.final_gains = tuple(float(v) for v in self.schedule[d.final_row()])
-        if res.tripped is None and self._asked:
-            last_step = self._asked[-1]
-            since = last_step[3] if last_step[3] is not None else last_step[0]
-            seen = d.last - since + 1
-            if seen > 0:
-                res.tuned_rate = d.cost(ep, since=since) / (seen * self.dt)
+        res.comparison = d.comparison()
+        steps = [k for k, e in enumerate(self._asked) if e[2] == "step"]
+        if res.tripped is None and steps:             # the tuned gains' step, up to the next change (if any)
+            k = steps[-1]
+            since = self._asked[k][3] if self._asked[k][3] is not None else self._asked[k][0]
+            until = self._asked[k + 1][0] if k + 1 < len(self._asked) else d.last + 1
+            if until > since:
+                res.tuned_rate = d.cost(ep, since=since, until=until) / ((until - since) * self.dt)
 
     def close(self) -> NodeDeployment:
         """Take what the gains topic said, write the bag; the report."""
