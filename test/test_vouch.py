@@ -71,8 +71,8 @@ def test_under_an_inadequate_model_nothing_is_vouched_for_and_the_deployment_dec
     line = vouch_line(bad, 258.0)
     assert line.startswith("NOT VOUCHED: the identified model is INADEQUATE") and "has-control deploy" in line
     k = np.array([gains, FRAGILE])
-    np.testing.assert_array_equal(make_objective(adequate, load_tuning())(k), make_objective(inadequate,
-                                                                                              load_tuning())(k))
+    same = make_objective(inadequate, load_tuning())(k)
+    np.testing.assert_array_equal(make_objective(adequate, load_tuning())(k), same)
     # without a band, an inadequate model is still said to be so
     plain = build_config({"plant.model_adequacy": "inadequate"}, source="test")
     assert answer_run(plain, load_tuning(), gains)["vouch"]["model_inadequate"]
