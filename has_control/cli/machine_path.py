@@ -128,9 +128,13 @@ def machine_path(out: Path, evaluations: int = 2000, seed: int = 1) -> dict:
     for line in dep_old.lines():
         print(f"   {line}")
     print("   from: the loop's own topics (command, the controller's internals and gains) during the run")
+    kept = tuple(dep.final_gains)
+    j_kept = float(evaluate(np.array([kept]), machine)[0])
+    print(f"   the path ends on the gains the deployment kept, ({', '.join(f'{k:.2f}' for k in kept)}): J on the "
+          f"machine {j_kept:.4e}, {j_kept / best:.3g}x its best ({j_kept / j_manual:.3g}x the manual gains' J)")
     print(f"The machine's path took {time.perf_counter() - t0:.0f} s; the identified plant: {out / 'identified.yaml'}")
-    return {"rows": rows, "manual": j_manual, "deploy": dep.as_json(), "deploy_old": dep_old.as_json(),
-            "structure": sel.chosen.structure.name}
+    return {"rows": rows, "manual": j_manual, "kept": {"gains": list(kept), "J": j_kept}, "deploy": dep.as_json(),
+            "deploy_old": dep_old.as_json(), "structure": sel.chosen.structure.name}
 
 
 def _deploy(machine, old_machine, chosen, old):
