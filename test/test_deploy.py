@@ -199,3 +199,20 @@ def test_on_the_plant_node_stable_gains_worse_than_the_safe_ones_end_on_the_safe
     assert [c[1] for c in res.changes] == [0, 1, 0, 1, 0] and all(c[3] is not None for c in res.changes)
     assert res.changes[-1][2] == "comparison: kept the safe gains"
     assert res.as_json()["comparison"]["kept_safe"]
+
+
+@pytest.mark.parametrize("flat", [{"plant.delay": 1}, {"plant.delay": 2, "plant.delay_fraction": 0.4},
+                                  {"plant.delay": 1, "noise.velocity_source": "derived",
+                                   "noise.velocity_filter_frequency": 200.0, "plant.friction_coulomb": 150.0}])
+def test_a_deployment_from_safe_to_safe_is_the_plain_run_on_any_plant(machine, flat):
+    """The guarded kernel runs the episode kernel's sample (a delayed command included: its ring was not kept,
+    and the valve got no command at all on a delayed plant)."""
+    from has_control.core.episode import simulate
+    from has_control.config import with_horizon
+    cfg = build_config(flat, base=machine)
+    plan = DeploymentPlan(SAFE, SAFE, steps=1, settle=0.5, hold=0.5)
+    res = deploy_in_process(cfg, plan, BLIND, keep_trace=True)
+    plain = simulate(with_horizon(cfg, max(cfg.episode.horizon, plan.duration())), SAFE)
+    # the two kernels compile the same arithmetic apart (last-bit roundings, which the loop amplifies a little)
+    assert res.J == pytest.approx(plain.score.J, rel=1e-9)
+    np.testing.assert_allclose(res.trace[:, 2:6], plain.data[:, 2:6], rtol=1e-6, atol=1e-9)

@@ -39,7 +39,7 @@ from has_control.config import with_horizon
 from has_control.core.cost import metric_finish
 from has_control.core.episode import (
     _A1, _A2, _GENERAL_ROWS, _J, _K1, _K2, _K3, _M2, _MEAN, _PEAK, _X1, _X2, _X3, _X4, EpisodeArrays, _constants,
-    general_sample_step, put_trace_row, simulate,
+    _ring_read, _ring_write, general_sample_step, put_trace_row, simulate,
 )
 from has_control.core.jit import KERNEL, LEAF
 from has_control.core.noise import measurement_noise
@@ -213,8 +213,10 @@ def _guarded(schedule, switches, lim, d, ap, pp, cp, rp, sp, seed, ep, x0, trace
             count += 1.0
         x1, x2, x3, x4, a1_hat, a2_hat = s[_X1, 0], s[_X2, 0], s[_X3, 0], s[_X4, 0], s[_A1, 0], s[_A2, 0]
         k1, k2, k3 = s[_K1, 0], s[_K2, 0], s[_K3, 0]
+        _ring_read(s, i, pp)                 # the delay's ring, as the episode kernel keeps it
         bad, u, e1, e2, e3 = general_sample_step(s, 0, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count,
                                                  in_window, ap, pp, cp, sp, ep, dt, y_limit)
+        _ring_write(s, i)
         if trace.shape[0] > 0:
             put_trace_row(trace[i], i * dt, r0, x1, x2, x3, x4, u, e1, e2, e3, a1_hat, a2_hat)
             trace[i, 12], trace[i, 13], trace[i, 14] = k1, k2, k3
