@@ -46,7 +46,7 @@ def add_arguments(p) -> None:
                         "when it is a sine, else 0; 0: no comparison)")
     p.add_argument("--margin", type=number(0.0, 0.99), default=None, metavar="R",
                    help="the held gains are kept only when their J measured below (1 - R) x the safe gains' "
-                        "(default 0.05: a period's J varies by a few %% on the study's machines)")
+                        "(default 0.1: one period's J varies by about 5 %% on a noisy machine)")
     p.add_argument("--predicted", type=number(0.0), metavar="J", help="the J the tuner predicted: flag a gap over 2x")
     p.add_argument("--record", metavar="DIR", help="write the guarded run as a bag")
     where = p.add_mutually_exclusive_group()

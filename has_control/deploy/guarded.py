@@ -56,7 +56,8 @@ _EVENTS = 5
 @dataclass(frozen=True)
 class DeploymentPlan:
     """safe and tuned gains (k1, k2, k3) [1/s]; steps; settle and hold [s];
-    measure [s]: each window of the final comparison (0: none), margin [-]:
+    measure [s]: each window of the final comparison (0: none), margin [-]
+    (default 0.10: twice the spread one period's J shows on a noisy machine, docs/deploy.md):
     how far below the safe gains' J the held gains' must measure to be kept."""
 
     safe: tuple[float, float, float]
@@ -65,7 +66,7 @@ class DeploymentPlan:
     settle: float = 1.0
     hold: float = 1.0
     measure: float = 0.0
-    margin: float = 0.05
+    margin: float = 0.10
 
     def check(self) -> None:
         for name in ("safe", "tuned"):
