@@ -216,3 +216,16 @@ def test_a_deployment_from_safe_to_safe_is_the_plain_run_on_any_plant(machine, f
     # the two kernels compile the same arithmetic apart (last-bit roundings, which the loop amplifies a little)
     assert res.J == pytest.approx(plain.score.J, rel=1e-9)
     np.testing.assert_allclose(res.trace[:, 2:6], plain.data[:, 2:6], rtol=1e-6, atol=1e-9)
+
+
+def test_the_watchdog_judges_a_noisy_machine_against_twice_the_safe_gains_own_command_power(machine):
+    """A machine whose safe gains already put more command above 20 Hz than the limit (noise through a
+    derived velocity) is not tripped for what it always does; a limit cycle still is."""
+    noisy = build_config({"noise.position": 1e-6, "noise.added_by": "plant", "noise.velocity_source": "derived"},
+                         base=machine)
+    limits = WatchdogLimits(hf_rms=1e-5, valve_limit=LIMIT)        # below the safe gains' own
+    res = deploy_in_process(noisy, DeploymentPlan(SAFE, (170.0, 170.0, 175.0), steps=2, settle=0.5, hold=0.5),
+                            limits)
+    assert res.tripped_at is None and res.hf_limit is not None and res.hf_limit > 1e-5
+    cycling = deploy_in_process(noisy, DeploymentPlan(SAFE, LIMIT_CYCLING, steps=1, settle=0.5, hold=1.0), limits)
+    assert cycling.tripped_at is not None and cycling.final_gains == pytest.approx(SAFE)

@@ -142,6 +142,7 @@ class DeploymentResult:
     predicted_J: float | None = None
     trace: np.ndarray | None = field(default=None, repr=False)
     comparison: Comparison | None = None
+    hf_limit: float | None = None          # the watchdog's command-power limit in effect [m] (None: as configured)
 
     @property
     def gap(self) -> float | None:
@@ -155,6 +156,9 @@ class DeploymentResult:
         out = [f"deployed in {self.plan.steps} steps of {self.plan.hold:g} s after {self.plan.settle:g} s on the safe "
                f"gains: J = {self.J:.6e} (safe gains alone {self.safe_J:.6e}, {self.J / self.safe_J:.3g}x; the tuned "
                f"gains at once {self.tuned_J:.6e})"]
+        if self.hf_limit is not None:
+            out.append(f"watchdog: its command-power limit raised to {self.hf_limit * 1e3:.3g} mm, three times the "
+                       "safe gains' own above the corner as the settling ended")
         if self.tripped_at is None:
             out.append(f"watchdog: no trip; final gains ({', '.join(f'{k:.2f}' for k in self.final_gains)})")
         else:
@@ -179,7 +183,7 @@ class DeploymentResult:
                 "predicted_J": self.predicted_J, "gap": f(self.gap) if self.gap is not None else None,
                 "gap_over_2x": bool(self.gap is not None and self.gap > 2.0),
                 "comparison": self.comparison.as_json() if self.comparison is not None else None,
-                "plan": dataclasses.asdict(self.plan)}
+                "hf_limit_raised_to": self.hf_limit, "plan": dataclasses.asdict(self.plan)}
 
 
 def gap_words(gap: float) -> str:
@@ -257,8 +261,8 @@ def deploy_in_process(cfg: Config, plan: DeploymentPlan, limits: WatchdogLimits 
     events = np.zeros(_EVENTS)
     ap, pp, cp, rp, sp, seed, ep, x0 = arr.kernel_args()
     d = plan_state(plan.compare(dt))
-    j, _, _, _, n, bad = _guarded(schedule, switches, limits.as_array(dt), d, ap, pp, cp, rp, sp, seed, ep, x0,
-                                  trace, events)
+    lim = limits.as_array(dt)
+    j, _, _, _, n, bad = _guarded(schedule, switches, lim, d, ap, pp, cp, rp, sp, seed, ep, x0, trace, events)
     safe_J = simulate(cfg, plan.safe).score.J
     tuned_J = simulate(cfg, plan.tuned).score.J
     tripped = events[0] >= 0
@@ -275,7 +279,8 @@ def deploy_in_process(cfg: Config, plan: DeploymentPlan, limits: WatchdogLimits 
                             float(events[0] * dt) if tripped else None,
                             REASONS.get(int(events[1])) if tripped else None, step, fallback, detected,
                             float(events[3] * dt) if events[3] >= 0 else None, predicted_J,
-                            trace[:n] if keep_trace else None, comparison_of(d, dt))
+                            trace[:n] if keep_trace else None, comparison_of(d, dt),
+                            float(lim[2]) if lim[2] > limits.hf_rms else None)
 
 
 def _fallback_row(schedule, switches, at: int) -> np.ndarray:

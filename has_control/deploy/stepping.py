@@ -15,6 +15,11 @@ deployment). Two compiled calls a sample, on a state array ``d``
   (it held a whole step; the safe gains before any), and on a second trip
   the safe gains. The settling on the safe gains (before the first step) is
   not judged. The fallback gains are judged only after a whole window of them.
+  The command-power limit is at least BASELINE_FACTOR (3) times the safe
+  gains' own RMS above the corner as the settling ends (a mean over the last
+  ~0.1 s, kept by :func:`plan_watch`, which raises ``lim`` once at the first
+  judged sample): a machine whose safe gains already exceed the limit is not
+  tripped for what it always does.
 
 The deployment keeps the better of what it measured (when the plan asks for a
 comparison: ``compare`` = (sample V, window W [samples], margin)). From sample
@@ -43,16 +48,20 @@ from numba import njit
 
 from has_control.core.cost import cost_increment, score_series
 from has_control.core.jit import LEAF
-from has_control.deploy.watchdog import (REASONS, SAMPLES, TRIPPED, WATCHDOG_STATE, WatchdogLimits, watchdog_reset,
-                                         watchdog_update)
+from has_control.deploy.watchdog import (POWER, REASONS, SAMPLES, TRIPPED, WATCHDOG_STATE, WatchdogLimits,
+                                         watchdog_reset, watchdog_update)
 
 #: Slots of the plan's state: the next row to take, 0/1/2 (stepping / on the last held row / on the safe
 #: gains), then the first trip (sample, reason, step) and the second (sample, reason); −1 where none;
 #: the row in effect; the comparison's start V (−1: none), window W [samples] and margin, its phase
 #: (COMPARE_PHASES), the row it measures against the safe gains, the two windows' J and the row kept (−1: none yet).
 (STEP, FALLEN, TRIP_AT, TRIP_REASON, TRIP_STEP, TRIP2_AT, TRIP2_REASON, ROW, CMP_AT, CMP_LEN, CMP_MARGIN, PHASE,
- HELD, J_SAFE, J_HELD, KEPT) = range(16)
-PLAN_STATE = 16
+ HELD, J_SAFE, J_HELD, KEPT, BASE_HF, HF_LIMIT) = range(18)
+PLAN_STATE = 18
+#: The watchdog's command-power limit is at least this times the safe gains' own RMS above the corner as the
+#: settling ends (its mean square over the last ~0.1 s: five times the watchdog's window).
+BASELINE_FACTOR = 3.0
+BASELINE_WINDOWS = 5.0
 #: Phases of the comparison.
 NOT_YET, ON_SAFE, ON_HELD, DECIDED, SKIPPED = range(5)
 COMPARE_PHASES = {NOT_YET: "not reached", ON_SAFE: "measuring the safe gains", ON_HELD: "measuring the held gains",
@@ -64,6 +73,7 @@ def plan_state(compare: tuple[int, int, float] | None = None) -> np.ndarray:
     d = np.full(PLAN_STATE, -1.0)
     d[STEP] = d[FALLEN] = d[ROW] = d[PHASE] = 0.0
     d[J_SAFE] = d[J_HELD] = 0.0
+    d[BASE_HF], d[HF_LIMIT] = 0.0, -1.0
     if compare is not None:
         at, n, margin = compare
         if not (at >= 0 and n >= 1 and 0.0 <= margin < 1.0):
@@ -127,8 +137,17 @@ def plan_cost(d, u, e1, ep):
 def plan_watch(d, w, i, u, e1, lim):
     """Sample ``i``'s command u [m] and error e1 [m] into the watchdog; the row
     to fall back to on a trip (−1: none)."""
-    reason = watchdog_update(w, u, e1, lim)
     step = int(d[STEP])
+    settling = step < 2 and d[FALLEN] == 0.0
+    if not settling and d[HF_LIMIT] < 0.0:
+        # a limit cycle is what the safe gains do not do: a machine whose safe gains already put more command
+        # above the corner than the limit (noise through a derived velocity) is judged against their own
+        lim[2] = max(lim[2], BASELINE_FACTOR * math.sqrt(max(d[BASE_HF], 0.0)))
+        d[HF_LIMIT] = lim[2]
+    reason = watchdog_update(w, u, e1, lim)
+    if settling:
+        # the safe gains' own command power above the corner [m²], a slow mean of the watchdog's window
+        d[BASE_HF] += lim[1] / BASELINE_WINDOWS * (w[POWER] - d[BASE_HF])
     fallen = int(d[FALLEN])
     if step < 2 and fallen == 0:
         reason = 0                   # the safe gains' settling is the machine before the deployment

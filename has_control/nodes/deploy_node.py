@@ -71,6 +71,7 @@ class NodeDeployment:
     final_gains: tuple = ()
     bag: Path | None = None
     comparison: Comparison | None = None       # what the plan's final comparison measured and kept
+    hf_limit: float | None = None              # the watchdog's command-power limit in effect [m]
 
     def fallback_latency(self) -> float | None:
         """Seconds of the loop from the sample that tripped to the first sample on the fallback gains."""
@@ -131,7 +132,7 @@ class NodeDeployment:
                 "predicted_J": self.predicted_J, "gap": f(self.gap) if self.gap is not None else None,
                 "gap_over_2x": bool(self.gap is not None and self.gap > 2.0),
                 "comparison": self.comparison.as_json() if self.comparison is not None else None,
-                "bag": str(self.bag) if self.bag else None}
+                "hf_limit": self.hf_limit, "bag": str(self.bag) if self.bag else None}
 
 
 class DeployNode(Node):
@@ -241,6 +242,7 @@ class DeployNode(Node):
         res.J = d.cost(ep)
         res.final_gains = tuple(float(v) for v in self.schedule[d.final_row()])
         res.comparison = d.comparison()
+        res.hf_limit = float(d.lim[2])
         steps = [k for k, e in enumerate(self._asked) if e[2] == "step"]
         if res.tripped is None and steps:             # the tuned gains' step, up to the next change (if any)
             k = steps[-1]
