@@ -108,3 +108,124 @@ def test_a_gap_is_flagged_over_2x_and_a_measured_j_far_below_the_prediction_is_n
     from has_control.deploy.guarded import gap_words
     assert gap_words(2.5) == "GAP over 2x" and gap_words(1.9) == gap_words(0.5) == "within 2x"
     assert "within" not in gap_words(0.00266) and "no gap over 2x" in gap_words(0.00266)
+
+
+# --- #29 item 1: the deployment keeps the better of what it measured -----------------------------------------
+#: Gains that are stable on the 100 Hz spool but lower than the safe ones: 2.2x the safe gains' J over 10 s.
+STABLE_WORSE = (120.0, 120.0, 120.0)
+
+
+def _compared(machine, tuned, **kw):
+    from has_control.deploy.guarded import reference_period
+    plan = DeploymentPlan(SAFE, tuned, steps=2, settle=0.5, hold=0.5, measure=reference_period(machine), **kw)
+    return plan, deploy_in_process(machine, plan)
+
+
+def test_a_deployment_of_stable_gains_worse_than_the_safe_ones_ends_on_the_safe_gains(machine):
+    from has_control.core.episode import simulate
+    assert simulate(machine, STABLE_WORSE).score.J > 1.5 * simulate(machine, SAFE).score.J   # the premise
+    plan, res = _compared(machine, STABLE_WORSE)
+    c = res.comparison
+    assert res.tripped_at is None                               # they held: the watchdog had nothing to say
+    assert c.phase == "decided" and c.held == plan.steps and c.kept == 0 and c.held_J > c.safe_J
+    assert res.final_gains == pytest.approx(SAFE)
+    assert any("KEPT THE SAFE GAINS" in line for line in res.lines())
+    assert res.as_json()["comparison"]["kept_safe"] and res.as_json()["final_gains"] == pytest.approx(SAFE)
+
+
+def test_a_deployment_of_better_gains_keeps_them_and_the_margin_decides_a_near_tie(machine):
+    plan, res = _compared(machine, (170.0, 170.0, 175.0))
+    assert res.comparison.kept == plan.steps and res.final_gains == pytest.approx((170.0, 170.0, 175.0))
+    assert res.comparison.held_J < (1.0 - plan.margin) * res.comparison.safe_J
+    # the same gains, a margin above what they gain: the safe gains stay
+    ratio = res.comparison.ratio
+    _, strict = _compared(machine, (170.0, 170.0, 175.0), margin=min(0.99, 1.0 - ratio + 0.02))
+    assert strict.comparison.kept == 0 and strict.final_gains == pytest.approx(SAFE)
+
+
+def test_both_windows_cover_one_period_of_the_reference_after_the_last_step_held(machine):
+    plan = DeploymentPlan(SAFE, STABLE_WORSE, steps=2, settle=0.5, hold=0.5, measure=np.pi)
+    dt = machine.episode.step
+    at, n, _ = plan.compare(dt)
+    assert at == plan.switches(dt)[-1] + round(0.5 / dt) and n == round(np.pi / dt)
+    assert plan.duration() == pytest.approx(1.5 + 2 * np.pi)
+    res = deploy_in_process(machine, plan, keep_trace=True)
+    k1 = res.trace[:, 12]
+    # the safe gains during the first window, the held (tuned) gains during the second, the safe gains after
+    np.testing.assert_allclose(k1[at:at + n], SAFE[0])
+    np.testing.assert_allclose(k1[at + n:at + 2 * n], STABLE_WORSE[0])
+    assert k1[at - 1] == pytest.approx(STABLE_WORSE[0]) and k1[-1] == pytest.approx(SAFE[0])
+
+
+def test_a_trip_during_the_comparison_ends_it_on_the_safe_gains():
+    from has_control.config import load_config
+    from has_control.deploy.stepping import Deployer
+    dt = 3e-4
+    plan = DeploymentPlan(SAFE, (170.0, 170.0, 175.0), steps=1, settle=0.1, hold=0.1, measure=0.1)
+    at, n, _ = plan.compare(dt)
+    d = Deployer(plan.schedule(), plan.switches(dt), WatchdogLimits(), dt, compare=plan.compare(dt),
+                 ep=load_config().episode.as_array())
+    asked = {}
+    for i in range(at + 2 * n + 1):
+        e1 = 0.02 if i == at + n + 50 else 0.0                  # error growth in the held gains' window
+        row = d.sample(i, 1e-4, e1)
+        if row >= 0:
+            asked[i] = row
+    assert asked == {0: 0, plan.switches(dt)[1]: 1, at: 0, at + n: 1, at + n + 50: 0}
+    assert d.comparison().kept == 0 and d.comparison().phase == "not run" and d.final_row() == 0
+
+
+def test_deploy_cli_compares_over_the_references_period_by_default(capsys):
+    code = main(["deploy", "--gains", *map(str, STABLE_WORSE), "--steps", "1", "--settle", "0.5", "--hold", "0.5",
+                 "--config", str(CONFIG_DIR / "machines" / "spool_100hz.yaml"), "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 0 and doc["comparison"]["window"] == pytest.approx(np.pi, abs=3e-4)
+    assert doc["comparison"]["kept_safe"] and doc["final_gains"] == pytest.approx(SAFE)
+    code = main(["deploy", "--gains", *map(str, STABLE_WORSE), "--steps", "1", "--settle", "0.5", "--hold", "0.5",
+                 "--measure", "0", "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert code == 0 and doc["comparison"] is None and doc["final_gains"] == pytest.approx(STABLE_WORSE)
+
+
+@pytest.mark.ros
+def test_on_the_plant_node_stable_gains_worse_than_the_safe_ones_end_on_the_safe_gains(machine, context):
+    """The node path runs the same comparison (deploy.stepping) through the topics and the parameters."""
+    from has_control.nodes.deploy_node import deploy_on_plant_node
+    plan = DeploymentPlan(SAFE, STABLE_WORSE, steps=1, settle=0.5, hold=0.5, measure=1.0)
+    res, _ = deploy_on_plant_node(machine, plan, context=context)
+    c = res.comparison
+    assert res.tripped is None and c.phase == "decided" and c.kept == 0 and c.held_J > c.safe_J
+    assert res.final_gains == pytest.approx(SAFE)
+    assert [c[1] for c in res.changes] == [0, 1, 0, 1, 0] and all(c[3] is not None for c in res.changes)
+    assert res.changes[-1][2] == "comparison: kept the safe gains"
+    assert res.as_json()["comparison"]["kept_safe"]
+
+
+@pytest.mark.parametrize("flat", [{"plant.delay": 1}, {"plant.delay": 2, "plant.delay_fraction": 0.4},
+                                  {"plant.delay": 1, "noise.velocity_source": "derived",
+                                   "noise.velocity_filter_frequency": 200.0, "plant.friction_coulomb": 150.0}])
+def test_a_deployment_from_safe_to_safe_is_the_plain_run_on_any_plant(machine, flat):
+    """The guarded kernel runs the episode kernel's sample (a delayed command included: its ring was not kept,
+    and the valve got no command at all on a delayed plant)."""
+    from has_control.core.episode import simulate
+    from has_control.config import with_horizon
+    cfg = build_config(flat, base=machine)
+    plan = DeploymentPlan(SAFE, SAFE, steps=1, settle=0.5, hold=0.5)
+    res = deploy_in_process(cfg, plan, BLIND, keep_trace=True)
+    plain = simulate(with_horizon(cfg, max(cfg.episode.horizon, plan.duration())), SAFE)
+    # the two kernels compile the same arithmetic apart (last-bit roundings, which the loop amplifies a little)
+    assert res.J == pytest.approx(plain.score.J, rel=1e-9)
+    np.testing.assert_allclose(res.trace[:, 2:6], plain.data[:, 2:6], rtol=1e-6, atol=1e-9)
+
+
+def test_the_watchdog_judges_a_noisy_machine_against_twice_the_safe_gains_own_command_power(machine):
+    """A machine whose safe gains already put more command above 20 Hz than the limit (noise through a
+    derived velocity) is not tripped for what it always does; a limit cycle still is."""
+    noisy = build_config({"noise.position": 1e-6, "noise.added_by": "plant", "noise.velocity_source": "derived"},
+                         base=machine)
+    limits = WatchdogLimits(hf_rms=1e-5, valve_limit=LIMIT)        # below the safe gains' own
+    res = deploy_in_process(noisy, DeploymentPlan(SAFE, (170.0, 170.0, 175.0), steps=2, settle=0.5, hold=0.5),
+                            limits)
+    assert res.tripped_at is None and res.hf_limit is not None and res.hf_limit > 1e-5
+    cycling = deploy_in_process(noisy, DeploymentPlan(SAFE, LIMIT_CYCLING, steps=1, settle=0.5, hold=1.0), limits)
+    assert cycling.tripped_at is not None and cycling.final_gains == pytest.approx(SAFE)

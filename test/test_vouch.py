@@ -54,3 +54,25 @@ def test_a_band_too_low_to_stand_for_vouches_for_nothing():
     assert unseen_variants(cfg)[0].capped
     report = answer_run(cfg, load_tuning(), (150.0, 150.0, 150.0))["vouch"]
     assert not report["vouched"] and report["band_too_low"]
+
+
+def test_under_an_inadequate_model_nothing_is_vouched_for_and_the_deployment_decides():
+    """#29 item 2: identify's INADEQUATE verdict (plant.model_adequacy) makes every answer NOT VOUCHED and says
+    the guarded deployment decides; the objective is the same (the variants still steer the search)."""
+    from has_control.tuning.tuner import make_objective
+    adequate = build_config({**IDENTIFIED, "plant.model_adequacy": "adequate"}, source="test")
+    inadequate = build_config({**IDENTIFIED, "plant.model_adequacy": "inadequate"}, source="test")
+    gains = (150.0, 150.0, 150.0)
+    ok = answer_run(adequate, load_tuning(), gains)["vouch"]
+    bad = answer_run(inadequate, load_tuning(), gains)["vouch"]
+    assert ok["vouched"] and not ok["model_inadequate"]
+    assert not bad["vouched"] and bad["model_inadequate"] and bad["variants"] == ok["variants"]
+    from has_control.tuning.vouch import vouch_line
+    line = vouch_line(bad, 258.0)
+    assert line.startswith("NOT VOUCHED: the identified model is INADEQUATE") and "has-control deploy" in line
+    k = np.array([gains, FRAGILE])
+    same = make_objective(inadequate, load_tuning())(k)
+    np.testing.assert_array_equal(make_objective(adequate, load_tuning())(k), same)
+    # without a band, an inadequate model is still said to be so
+    plain = build_config({"plant.model_adequacy": "inadequate"}, source="test")
+    assert answer_run(plain, load_tuning(), gains)["vouch"]["model_inadequate"]

@@ -18,7 +18,11 @@ whether identify called its model adequate. Tuned on the identified model:
 ``path`` with the paper's J, ``req`` with ``config/requirements_machine.yaml``
 (the documented settings for a real machine), ``robust`` (``--robust``) over
 ``config/scenarios_machine.yaml``; each vouched for above the validated band
-(:mod:`has_control.tuning.vouch`).
+(:mod:`has_control.tuning.vouch`). The documented path ends with the guarded
+deployment (:mod:`has_control.deploy.guarded`, in process on the machine,
+with the comparison over one period of the reference): ``deployed`` is the
+gains it kept (the requirements' answer, or the manual gains when the
+answer measured no better than they did), and the documented column's J.
 
 ``python -m has_control.bench.machines [--machines NAME ...] [--evaluations N] [--robust] [--json FILE]``
 (``scripts/bench --machines``). A study, not a test: it prints what it measured.
@@ -36,6 +40,7 @@ import numpy as np
 from has_control.config import CONFIG_DIR, build_config, flatten, load_config, load_yaml
 from has_control.core.episode import evaluate, simulate
 from has_control.core.params import MANUAL_GAINS, Config, Plant
+from has_control.deploy.guarded import DeploymentPlan, deploy_in_process, reference_period
 from has_control.identify.data import Experiment, experiment_from_trace
 from has_control.identify.params_out import params_yaml
 from has_control.identify.structures import select_structure
@@ -153,6 +158,9 @@ def study(machine: Machine, evaluations: int, robust: bool, seed: int = 1) -> di
         r = tune(model, t, diagnostics=False)
         candidates[label], predicted[label] = r.gains, float(r.result.fun)
         vouch[label] = r.lines()
+    plan = DeploymentPlan(MANUAL_GAINS.as_tuple(), tuple(candidates["req"]), measure=reference_period(on_machine))
+    deployment = deploy_in_process(on_machine, plan)
+    candidates["deployed"] = deployment.final_gains
     j = evaluate(np.array(list(candidates.values())), on_machine)
     j_best = float(j[1])
     rows = {}
@@ -163,6 +171,7 @@ def study(machine: Machine, evaluations: int, robust: bool, seed: int = 1) -> di
     v = sel.chosen.result.verdict
     return {"machine": machine.name, "text": machine.text, "structure": sel.chosen.structure.name,
             "verdict": v.line() if v is not None else "", "rows": rows,
+            "deployment": {"lines": deployment.lines(), **deployment.as_json()},
             "seconds": {"identify": t_identify, "total": time.perf_counter() - t0}}
 
 
@@ -176,6 +185,9 @@ def print_row(r: dict) -> None:
               f"at stop {100 * row['at_stop']:5.2f} %{pred}")
         for line in row.get("vouch", []):
             print(f"          {line}")
+        if label == "deployed":
+            for line in r["deployment"]["lines"]:
+                print(f"          {line}")
     print(f"  ({r['seconds']['total']:.0f} s)", flush=True)
 
 

@@ -40,6 +40,13 @@ def add_arguments(p) -> None:
                    help="trip when this share of the last 20 ms has the spool at its stop (default 0.05)")
     p.add_argument("--e1-max", type=number(1e-9, 1.0), default=0.01, metavar="M",
                    help="trip when |e1| exceeds this [m] (default 0.01)")
+    p.add_argument("--measure", type=number(0.0, 3600.0), default=None, metavar="S",
+                   help="then compare the safe gains and the gains that held over S s each, and keep the safe "
+                        "gains unless the others measured lower (default: one period of --config's reference "
+                        "when it is a sine, else 0; 0: no comparison)")
+    p.add_argument("--margin", type=number(0.0, 0.99), default=None, metavar="R",
+                   help="the held gains are kept only when their J measured below (1 - R) x the safe gains' "
+                        "(default 0.1: one period's J varies by about 5 %% on a noisy machine)")
     p.add_argument("--predicted", type=number(0.0), metavar="J", help="the J the tuner predicted: flag a gap over 2x")
     p.add_argument("--record", metavar="DIR", help="write the guarded run as a bag")
     where = p.add_mutually_exclusive_group()
@@ -60,11 +67,13 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     # lazy: the deployment's kernels load numba's compiled code (~1 s); --help should not wait
-    from has_control.deploy.guarded import DeploymentPlan, deploy_in_process
+    from has_control.deploy.guarded import DeploymentPlan, deploy_in_process, reference_period
     from has_control.deploy.watchdog import WatchdogLimits
     check_outputs(args, directories=("record",))
     cfg = load_config(args.config or [])
-    plan = DeploymentPlan(gains_arg(args.safe, "--safe"), gains_arg(args.gains), args.steps, args.settle, args.hold)
+    measure = args.measure if args.measure is not None else (reference_period(cfg) or 0.0)
+    plan = DeploymentPlan(gains_arg(args.safe, "--safe"), gains_arg(args.gains), args.steps, args.settle, args.hold,
+                          measure, *(() if args.margin is None else (args.margin,)))
     limits = WatchdogLimits(hf_rms=args.hf_rms, stop_share=args.stop_share, e1_max=args.e1_max,
                             valve_limit=cfg.plant.valve_limit)
     if args.plant_node or args.controller:

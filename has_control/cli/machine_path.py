@@ -25,7 +25,7 @@ from has_control.common.files import write_atomic
 from has_control.config import CONFIG_DIR, build_config, flatten, load_config, load_yaml
 from has_control.core.episode import evaluate, simulate
 from has_control.core.params import MANUAL_GAINS
-from has_control.deploy.guarded import DeploymentPlan
+from has_control.deploy.guarded import DeploymentPlan, reference_period
 from has_control.identify.data import Experiment, experiment_from_trace
 from has_control.identify.fit import identify
 from has_control.identify.params_out import params_yaml
@@ -113,7 +113,9 @@ def machine_path(out: Path, evaluations: int = 2000, seed: int = 1) -> dict:
     print(f"   from: each identified model ({out / 'identified.yaml'}: the controller runs its actuator.*); "
           "J on the machine and its best: the simulated machine itself, which only a study can know")
     chosen = rows[1]
-    print("4. guarded deployment of the requirements' gains on the machine (4 steps of 1 s): the plant node "
+    print("4. guarded deployment of the requirements' gains on the machine (4 steps of 1 s, then the "
+          "safe gains and the gains that held over one period of the reference each: the better measured is kept): "
+          "the plant node "
           "runs the machine, the controller node the identified model; the gains move through the controller's "
           "parameters, the watchdog reads the topics (has-control deploy --plant-node; on a real machine "
           "--controller /controller) ...", flush=True)
@@ -126,9 +128,13 @@ def machine_path(out: Path, evaluations: int = 2000, seed: int = 1) -> dict:
     for line in dep_old.lines():
         print(f"   {line}")
     print("   from: the loop's own topics (command, the controller's internals and gains) during the run")
+    kept = tuple(dep.final_gains)
+    j_kept = float(evaluate(np.array([kept]), machine)[0])
+    print(f"   the path ends on the gains the deployment kept, ({', '.join(f'{k:.2f}' for k in kept)}): J on the "
+          f"machine {j_kept:.4e}, {j_kept / best:.3g}x its best ({j_kept / j_manual:.3g}x the manual gains' J)")
     print(f"The machine's path took {time.perf_counter() - t0:.0f} s; the identified plant: {out / 'identified.yaml'}")
-    return {"rows": rows, "manual": j_manual, "deploy": dep.as_json(), "deploy_old": dep_old.as_json(),
-            "structure": sel.chosen.structure.name}
+    return {"rows": rows, "manual": j_manual, "kept": {"gains": list(kept), "J": j_kept}, "deploy": dep.as_json(),
+            "deploy_old": dep_old.as_json(), "structure": sel.chosen.structure.name}
 
 
 def _deploy(machine, old_machine, chosen, old):
@@ -136,11 +142,12 @@ def _deploy(machine, old_machine, chosen, old):
     # lazy: rclpy and the nodes load here only (the study's other steps need no ROS)
     from has_control.nodes.deploy_node import deploy_on_plant_node
     from has_control.nodes.runtime import borrowed_context
+    period = reference_period(machine) or 0.0            # the final comparison over one period of the reference
     with borrowed_context() as context:
-        dep = deploy_on_plant_node(machine, DeploymentPlan(MANUAL_GAINS.as_tuple(), chosen[1]), context=context,
-                                   predicted_J=chosen[2])[0]
+        dep = deploy_on_plant_node(machine, DeploymentPlan(MANUAL_GAINS.as_tuple(), chosen[1], measure=period),
+                                   context=context, predicted_J=chosen[2])[0]
     with borrowed_context() as context:                  # the same node names again: a context of their own
-        dep_old = deploy_on_plant_node(old_machine, DeploymentPlan(MANUAL_GAINS.as_tuple(), old[1]),
+        dep_old = deploy_on_plant_node(old_machine, DeploymentPlan(MANUAL_GAINS.as_tuple(), old[1], measure=period),
                                        context=context, predicted_J=old[2])[0]
     return dep, dep_old
 

@@ -24,8 +24,8 @@ from has_control.common.errors import ConfigError, shown
 from has_control.config.params_file import read_parameter_files
 from has_control.config.table import Param
 from has_control.core.params import (
-    DELAY_MAX, NOISE_ADDED_BY, ROAD_CLASSES, SUBSTEPS_MAX, VELOCITY_SOURCES, X3D_MODES, REFERENCE_KINDS, Actuator,
-    Adaptation, Config, Episode, Gains, Noise, Plant, Reference,
+    DELAY_MAX, MODEL_ADEQUACY, NOISE_ADDED_BY, ROAD_CLASSES, SUBSTEPS_MAX, VELOCITY_SOURCES, X3D_MODES,
+    REFERENCE_KINDS, Actuator, Adaptation, Config, Episode, Gains, Noise, Plant, Reference,
 )
 from has_control.core.road import road_components
 
@@ -159,6 +159,8 @@ _register("plant", "plant", (
             **_NONNEG),
     _double("valve_damping_ratio", "-", "zeta of the second-order spool", **_POS),
     _int("delay", "samples", "transport delay of the command", 0, DELAY_MAX),
+    _double("delay_fraction", "samples", "a further fraction of a sample of delay, the command interpolated "
+            "linearly between samples (0: whole samples)", lower=0.0, upper=1.0, upper_open=True),
     _int("substeps", "", "RK4 steps per sample, the command held", 1, SUBSTEPS_MAX),
     _double("friction_coulomb", "N", "Fc, Coulomb friction on the piston (0: none)", **_NONNEG),
     _double("friction_stribeck", "N", "Fs, static (breakaway) friction (0 with Fc = 0: none)", **_NONNEG),
@@ -166,6 +168,8 @@ _register("plant", "plant", (
     _double("friction_smoothing", "m/s", "eps, the friction's sign is v/sqrt(v^2 + eps^2)", **_POS),
     _double("validated_band", "Hz", "identify's validated band for this plant (0: not stated; tune vouches above it)",
             **_NONNEG),
+    _choice("model_adequacy", "identify's verdict on this plant: unstated | adequate | inadequate (tune vouches for "
+            "nothing under an inadequate model)", MODEL_ADEQUACY),
 ))
 _register("noise", "noise", (
     _double("position", "m", "standard deviation on y", **_NONNEG),
@@ -307,6 +311,9 @@ def _check_plant(cfg: Config, fail) -> None:
         if plant.valve_frequency > limit:
             fail("plant.valve_frequency", plant.valve_frequency,
                  f"must be at most substeps/(2*pi*simulation.step) = {limit:.4g} Hz, for the RK4 step")
+    if plant.delay_fraction > 0.0 and plant.delay >= DELAY_MAX:
+        fail("plant.delay_fraction", plant.delay_fraction,
+             f"must be 0 with plant.delay = {DELAY_MAX} (the longest delay the kernels hold)")
     if ref.kind == "road":
         if ref.cutoff >= 0.5 / ep.step:        # first: it bounds the number of components
             fail("reference.cutoff", ref.cutoff, f"must be below the Nyquist frequency {0.5 / ep.step:g} Hz")

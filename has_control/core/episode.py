@@ -129,7 +129,8 @@ def general_sample_step(s, q, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, i
     s[_A1, q], s[_A2, q] = adapt(a1_hat, a2_hat, rate1, rate2, cp, dt)
     s[_X3D, q] = x3d
     s[_U, q] = u
-    applied = u if pp[DELAY] == 0.0 else s[_UA, q]
+    d = pp[DELAY]
+    applied = u if d == 0.0 else (s[_UA, q] if d >= 1.0 else s[_UA, q] + (1.0 - d) * u)
     y, v, p1, p2, sv, wv = spool_plant_step(x1, x2, x3, x4, s[_XV, q], s[_WV, q], applied, pp, dt)
     s[_X1, q], s[_X2, q], s[_X3, q], s[_X4, q], s[_XV, q], s[_WV, q] = y, v, p1, p2, sv, wv
     bad = diverged(y, v, p1, p2, y_limit) | (not math.isfinite(u))
@@ -138,10 +139,20 @@ def general_sample_step(s, q, i, r0, r1, r2, r3, n1, n2, n3, n4, noisy, count, i
 
 @njit(**LEAF)
 def _ring_read(s, i, pp):
-    """Row _UA = the ring's command of sample i − d (d = pp[DELAY]; 0 before sample 0), every lane."""
-    slot = _RING + (i + DELAY_RING - int(pp[DELAY])) % DELAY_RING
+    """Row _UA = the ring's command of sample i − d (d = pp[DELAY]; 0 before sample 0), every lane; with a
+    fraction f of d, (1 − f)·u(i − ⌊d⌋) + f·u(i − ⌊d⌋ − 1), the first term left to
+    :func:`general_sample_step` when ⌊d⌋ = 0 (this sample's command is not in the ring yet)."""
+    d = pp[DELAY]
+    n = int(d)
+    f = d - n
+    slot = _RING + (i + DELAY_RING - n) % DELAY_RING
+    if f == 0.0:
+        for q in range(s.shape[1]):
+            s[_UA, q] = s[slot, q]
+        return
+    before = _RING + (i + DELAY_RING - n - 1) % DELAY_RING
     for q in range(s.shape[1]):
-        s[_UA, q] = s[slot, q]
+        s[_UA, q] = f * s[before, q] if n == 0 else (1.0 - f) * s[slot, q] + f * s[before, q]
 
 
 @njit(**LEAF)

@@ -49,6 +49,8 @@ X3D_MODES = {"analytic": X3D_ANALYTIC, "backward_difference": X3D_BACKWARD}
 #: Where the measurement noise is added: by the controller to the true states it
 #: receives (the reference), or by the plant to the states it publishes.
 NOISE_ADDED_BY = {"controller": 0, "plant": 1}
+#: identify's verdict on a plant as a model of a machine (plant.model_adequacy; no physics reads it).
+MODEL_ADEQUACY = {"unstated": 0, "adequate": 1, "inadequate": 2}
 
 # --- reference array layout -------------------------------------------------
 REF_KIND, REF_AMPLITUDE, REF_OMEGA, REF_OFFSET, REF_T0, REF_RISE, REF_F0, \
@@ -133,14 +135,21 @@ class Plant:
     states of the same RK4 step (0: not second order; exclusive with the
     first-order lag); with a valve_limit the spool stops at ±u_max (its
     velocity zeroed there). delay d [samples, 0..DELAY_MAX]: the valve gets
-    the command of d samples earlier (0 before the start). friction_coulomb
+    the command of d samples earlier (0 before the start); delay_fraction f
+    [samples, 0 ≤ f < 1]: a further fraction of a sample, the command
+    interpolated linearly between samples i − d and i − d − 1 (a delay of
+    d + f samples; 0: whole samples, as before). friction_coulomb
     Fc [N], friction_stribeck Fs [N] (breakaway force), stribeck_velocity
     v_s [m/s], friction_smoothing ε [m/s]: F = (Fc + (Fs − Fc)·e^(−(ẏ/v_s)²))
     ·ẏ/√(ẏ² + ε²) against the motion. substeps: RK4 steps a sample (the
     command held). validated_band [Hz]: the band up to which identification
     validated this plant as a model of a machine (0: not stated); no physics
     reads it: ``tune`` vouches for its answer against what may lie above it
-    (:mod:`has_control.tuning.vouch`). The defaults are the reference configuration: the plant
+    (:mod:`has_control.tuning.vouch`). model_adequacy: identify's verdict on
+    this plant as a model of a machine (``unstated``, ``adequate`` or
+    ``inadequate``); no physics reads it: under ``inadequate`` ``tune`` vouches
+    for nothing and leaves the choice to the deployment's measurement
+    (docs/tuners.md). The defaults are the reference configuration: the plant
     is the model, the valve ideal (docs/model.md).
     """
 
@@ -155,12 +164,14 @@ class Plant:
     valve_frequency: float = 0.0
     valve_damping_ratio: float = 0.7
     delay: int = 0
+    delay_fraction: float = 0.0
     friction_coulomb: float = 0.0
     friction_stribeck: float = 0.0
     stribeck_velocity: float = 0.01
     friction_smoothing: float = 1.0e-4
     substeps: int = 1
     validated_band: float = 0.0
+    model_adequacy: str = "unstated"
 
     def has_friction(self) -> bool:
         return self.friction_coulomb != 0.0 or self.friction_stribeck != 0.0
@@ -169,7 +180,7 @@ class Plant:
         """What the kernels specialise on (STRUCTURE_*): the simplest that holds this plant."""
         if self.has_friction() or self.substeps != 1:
             return STRUCTURE_FULL
-        if self.valve_frequency > 0.0 or self.delay != 0:
+        if self.valve_frequency > 0.0 or self.delay != 0 or self.delay_fraction != 0.0:
             return STRUCTURE_SPOOL
         return STRUCTURE_REFERENCE
 
@@ -181,12 +192,13 @@ class Plant:
     def as_array(self, model: Actuator) -> np.ndarray:
         """The plant array: :meth:`Actuator.as_array` of :meth:`actuator`, then
         u_max [m], 1/τ_v [1/s] (0 for an ideal valve), ω_n [rad/s] (0: not
-        second order), ζ, delay [samples], substeps, Fc [N], Fs [N], v_s [m/s],
+        second order), ζ, delay + delay_fraction [samples], substeps, Fc [N], Fs [N], v_s [m/s],
         ε [m/s] and the structure (STRUCTURE_*)."""
         rate = 1.0 / self.valve_time_constant if self.valve_time_constant > 0.0 else 0.0
         omega = 2.0 * math.pi * self.valve_frequency
         return np.concatenate([self.actuator(model).as_array(), [
-            self.valve_limit, rate, omega, self.valve_damping_ratio, float(self.delay), float(self.substeps),
+            self.valve_limit, rate, omega, self.valve_damping_ratio, self.delay + self.delay_fraction,
+            float(self.substeps),
             self.friction_coulomb, self.friction_stribeck, self.stribeck_velocity, self.friction_smoothing,
             float(self.structure())]])
 

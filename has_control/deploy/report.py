@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from has_control.deploy.guarded import DeploymentPlan, gap_words
+from has_control.deploy.stepping import Comparison
 
 
 class Changes:
@@ -59,22 +60,29 @@ class NodeDeployment:
     predicted_horizon: float | None = None
     final_gains: tuple = ()
     bag: Path | None = None
+    comparison: Comparison | None = None       # what the plan's final comparison measured and kept
+    hf_limit: float | None = None              # the watchdog's command-power limit in effect [m]
 
     def take(self, deployer, schedule, ep, changes: Changes) -> None:
         """The plan has run: the samples watched, the trips, J (``ep``: the episode's
         array, the cost's λ's), the final gains and, without a trip, the tuned gains' cost
-        rate [1/s] over their step (from when they took effect, else when asked)."""
+        rate [1/s] over their step (from when they took effect, else when asked, up to
+        the next change: the final comparison's), the comparison and the watchdog's limit in effect."""
         d = deployer
         self.first, self.last = d.first, d.last
         self.tripped, self.second_trip = d.tripped(), d.second_trip()
         self.J = d.cost(ep)
         self.final_gains = tuple(float(v) for v in schedule[d.final_row()])
-        if self.tripped is None and changes.asked:
-            last_step = changes.asked[-1]
-            since = last_step[3] if last_step[3] is not None else last_step[0]
-            seen = d.last - since + 1
-            if seen > 0:
-                self.tuned_rate = d.cost(ep, since=since) / (seen * self.step)
+        self.comparison = d.comparison()
+        self.hf_limit = float(d.lim[2])
+        asked = changes.asked
+        steps = [k for k, e in enumerate(asked) if e[2] == "step"]
+        if self.tripped is None and steps:            # the tuned gains' step, up to the next change (if any)
+            k = steps[-1]
+            since = asked[k][3] if asked[k][3] is not None else asked[k][0]
+            until = asked[k + 1][0] if k + 1 < len(asked) else d.last + 1
+            if until > since:
+                self.tuned_rate = d.cost(ep, since=since, until=until) / ((until - since) * self.step)
 
     def fallback_latency(self) -> float | None:
         """Seconds of the loop from the sample that tripped to the first sample on the fallback gains."""
@@ -109,6 +117,8 @@ class NodeDeployment:
                        f"({self.tripped[1]}); fallback in effect "
                        + (f"{lat * 1e3:.1f} ms later" if lat is not None else "not seen")
                        + f"; final gains ({', '.join(f'{k:.2f}' for k in self.final_gains)})")
+        if self.comparison is not None:
+            out.append(self.comparison.line(self.plan.steps))
         g = self.gap
         if g is not None:
             out.append(f"measured against predicted J: {g:.3g}x ({gap_words(g)}; "
@@ -132,4 +142,5 @@ class NodeDeployment:
                 "changes": [{"sample": a, "row": r, "why": w, "took_effect": t} for a, r, w, t in self.changes],
                 "predicted_J": self.predicted_J, "gap": f(self.gap) if self.gap is not None else None,
                 "gap_over_2x": bool(self.gap is not None and self.gap > 2.0),
-                "bag": str(self.bag) if self.bag else None}
+                "comparison": self.comparison.as_json() if self.comparison is not None else None,
+                "hf_limit": self.hf_limit, "bag": str(self.bag) if self.bag else None}

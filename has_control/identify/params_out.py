@@ -92,6 +92,9 @@ def params_yaml(cfg: Config, result: IdentificationResult, note: str = "") -> st
             v = getattr(plant, k)
             lines.append(f"      {k}: {v!r}   # [{unit}] (the structure)" if isinstance(v, int) else
                          f"      {k}: {float(v)!r}   # [{unit}] (the structure)")
+    if result.verdict is not None:
+        lines.append(f"      model_adequacy: {'adequate' if result.verdict.adequate else 'inadequate'}"
+                     "   # identify's verdict (tune vouches for nothing under an inadequate model)")
     if result.verdict is not None and math.isfinite(result.verdict.band_hz) and result.verdict.band_hz > 0.0:
         band = float(result.verdict.band_hz)
         lines.append(f"      validated_band: {band!r}   # [Hz] (tune vouches for its gains above it)")

@@ -74,7 +74,8 @@ class DeployNode(Node):
         self.step_ns = int(round(self.dt * 1e9))
         self.schedule = plan.schedule()
         self.deployer = Deployer(self.schedule, plan.switches(self.dt), limits, self.dt,
-                                 end=int(round(plan.duration() / self.dt)))
+                                 end=int(round(plan.duration() / self.dt)), compare=plan.compare(self.dt),
+                                 ep=cfg.episode.as_array())
         self.pairing = Pairing(stamped=watched.layout == "has_control")
         self.params = AsyncParameterClient(self, watched.controller)
         self.result = NodeDeployment(plan, self.dt, predicted_J=predicted_J, predicted_horizon=predicted_horizon)

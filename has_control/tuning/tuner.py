@@ -282,7 +282,8 @@ def answer_run(cfg: Config, tuning: Tuning, gains) -> dict | None:
     or a validated band or the tuning has requirements; else None."""
     variants = unseen_variants(cfg)
     req = tuning.requirements
-    if req is None and cfg.plant.valve_limit <= 0.0 and not variants:
+    inadequate = cfg.plant.model_adequacy == "inadequate"
+    if req is None and cfg.plant.valve_limit <= 0.0 and not variants and not inadequate:
         return None
     rows = evaluate_measured(np.array([gains]), [cfg] + [v.cfg for v in variants],
                              **({"corner": req.hf_frequency} if req else {}))[0]
@@ -291,10 +292,11 @@ def answer_run(cfg: Config, tuning: Tuning, gains) -> dict | None:
     if req is not None:
         out["requirements"] = req.report(row)
         out["J_requirements"] = float(req.cost(row[None, :])[0])
-    if variants:
+    if variants or inadequate:
         out["vouch"] = {"band_hz": float(cfg.plant.validated_band),
                         **vouch_report([v.name for v in variants], [v.text for v in variants], float(row[0]),
-                                       rows[1:, 0], capped=any(v.capped for v in variants))}
+                                       rows[1:, 0], capped=any(v.capped for v in variants),
+                                       inadequate=inadequate)}
     return out
 
 

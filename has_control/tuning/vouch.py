@@ -10,8 +10,9 @@ candidate is also run on the *unseen variants* of the plant, each a change no
 experiment below the band could have told apart from it:
 
 * ``delay``: the plant's delay plus the group delay 2ζ/ω of a second-order
-  lag (ζ 0.7) at UNSEEN_FACTOR (2) times the band, rounded to whole samples
-  (at least one): dynamics the data cannot see (identify calls a valve corner
+  lag (ζ 0.7) at UNSEEN_FACTOR (2) times the band, in samples (at least one;
+  the fraction of a sample a fractional delay, ``plant.delay_fraction``, not
+  rounded): dynamics the data cannot see (identify calls a valve corner
   above twice the band not determined), as a low-frequency phase lag;
 * with a second-order spool: ``spool_slower`` (f_n × 0.85) and
   ``spool_damped_less`` (ζ × 0.8): a spool's bandwidth falls with the
@@ -26,6 +27,17 @@ unseen (a ratio alone would let a limit-cycling plant pass, its variants as
 bad as itself); where every candidate relies on it, the answer is reported
 NOT VOUCHED with the variant that binds.
 Without a validated band nothing changes (the reference configuration).
+
+Under a model identify called INADEQUATE (``plant.model_adequacy:
+inadequate``: residuals not white, a held-out fit below its limit) the model
+vouches for nothing: the objective is the same (the variants still steer
+the search away from what the band leaves unseen), but the answer is reported
+NOT VOUCHED whatever its variants give, and the choice is left to the guarded
+deployment, which measures the answer against the safe gains on the machine
+and keeps the safe ones unless it measures better
+(:mod:`has_control.deploy.stepping`). The search box is not tightened around
+the safe gains: on the study's machines an INADEQUATE model still found gains
+at 0.22x the manual gains' J (docs/machines.md).
 """
 from __future__ import annotations
 
@@ -61,11 +73,16 @@ def unseen_variants(cfg: Config) -> list[Variant]:
     if band <= 0.0:
         return []
     p = cfg.plant
-    extra = round(2.0 * UNSEEN_ZETA / (2.0 * math.pi * UNSEEN_FACTOR * band) / cfg.episode.step)
-    delay = min(DELAY_MAX, p.delay + max(1, extra))
-    out = [Variant("delay", f"{delay - p.delay} more samples of delay (a lag at {UNSEEN_FACTOR * band:.3g} Hz)",
-                   dataclasses.replace(cfg, plant=dataclasses.replace(p, delay=delay)),
-                   capped=p.delay + max(1, extra) > DELAY_MAX)]
+    extra = max(1.0, 2.0 * UNSEEN_ZETA / (2.0 * math.pi * UNSEEN_FACTOR * band) / cfg.episode.step)
+    total = p.delay + p.delay_fraction + extra
+    capped = total > DELAY_MAX
+    total = min(float(DELAY_MAX), total)
+    whole = int(total)
+    fraction = total - whole if total - whole >= 1e-9 else 0.0    # a fractional delay, interpolated (no rounding)
+    out = [Variant("delay", f"{total - p.delay - p.delay_fraction:.3g} more samples of delay (a lag at "
+                   f"{UNSEEN_FACTOR * band:.3g} Hz)",
+                   dataclasses.replace(cfg, plant=dataclasses.replace(p, delay=whole, delay_fraction=fraction)),
+                   capped=capped)]
     if p.valve_frequency > 0.0:
         slower = dataclasses.replace(p, valve_frequency=0.85 * p.valve_frequency)
         out.append(Variant("spool_slower", f"the spool at {0.85 * p.valve_frequency:.3g} Hz",
@@ -84,19 +101,27 @@ def vouched_cost(nominal: np.ndarray, variants: np.ndarray) -> np.ndarray:
 
 
 def vouch_report(names: list[str], texts: list[str], nominal: float, variants: np.ndarray,
-                 capped: bool = False) -> dict:
+                 capped: bool = False, inadequate: bool = False) -> dict:
     """Whether one answer is vouched for: its J on each variant over its J on
-    the plant (never when ``capped``: the band is too low to stand for)."""
+    the plant (never when ``capped``: the band is too low to stand for; never
+    when ``inadequate``: identify called the model INADEQUATE)."""
     rows = [{"variant": n, "text": t, "J": float(j), "ratio": float(j / nominal) if nominal > 0 else math.inf}
             for n, t, j in zip(names, texts, variants)]
     worst = max(rows, key=lambda r: r["ratio"]) if rows else None
-    ok = all(math.isfinite(r["ratio"]) and r["ratio"] <= RATIO for r in rows) and not capped
+    ok = all(math.isfinite(r["ratio"]) and r["ratio"] <= RATIO for r in rows) and not capped and not inadequate
     return {"vouched": ok, "ratio_limit": RATIO, "variants": rows, "worst": worst["variant"] if worst else None,
-            "band_too_low": bool(capped)}
+            "band_too_low": bool(capped), "model_inadequate": bool(inadequate)}
 
 
 def vouch_line(report: dict, band: float) -> str:
     """One line: vouched, or NOT VOUCHED and why."""
+    if report.get("model_inadequate"):
+        w = next((r for r in report["variants"] if r["variant"] == report["worst"]), None)
+        seen = (f"; its worst unseen variant, {w['text']}, gives {w['ratio']:.3g}x (limit {RATIO:g}x)"
+                if w is not None else "")
+        return ("NOT VOUCHED: the identified model is INADEQUATE (identify's verdict): its J is not the machine's"
+                f"{seen}; the deployment decides: has-control deploy measures these gains against the safe ones "
+                "on the machine and keeps the safe gains unless these measure better")
     if report.get("band_too_low"):
         return (f"NOT VOUCHED: the validated band ({band:.3g} Hz) is too low to vouch for any gains (the dynamics "
                 f"it leaves unseen exceed {DELAY_MAX} samples of delay); record config/identify_valve.yaml too")

@@ -92,7 +92,12 @@ def plant_sample(x, u, pp, dt, y_limit, sample, step_ns, state, clock, scr):
         c = int(x[XS_COUNT])
         x[XS_RING + c % DELAY_RING] = u
         x[XS_COUNT] = c + 1
-        applied = x[XS_RING + (c + DELAY_RING - int(pp[DELAY])) % DELAY_RING]
+        d = pp[DELAY]
+        n = int(d)
+        applied = x[XS_RING + (c + DELAY_RING - n) % DELAY_RING]
+        if d != n:                           # a fraction f of a sample: (1 − f)·u(c − n) + f·u(c − n − 1)
+            f = d - n
+            applied = (1.0 - f) * applied + f * x[XS_RING + (c + DELAY_RING - n - 1) % DELAY_RING]
         y, v, p1, p2, sv, wv = spool_plant_step(x[0], x[1], x[2], x[3], x[4], x[XS_WV], applied, pp, dt)
         x[XS_WV] = wv
     x[0] = y
