@@ -14,6 +14,7 @@ from has_control.core.episode import EpisodeArrays, evaluate, simulate
 from has_control.core.params import DELAY_MAX
 from has_control.tuning.vouch import UNSEEN_FACTOR, UNSEEN_ZETA, unseen_variants
 from has_control.wire import steps
+from test_plant_models import node_step_states
 
 MANUAL = (150.0, 158.0, 162.0)
 
@@ -56,16 +57,7 @@ def test_the_plant_nodes_step_and_both_library_kernels_delay_fractionally_alike(
     gives the trace kernel's J."""
     cfg = _cfg(flat)
     tr = simulate(cfg, MANUAL)
-    arr = EpisodeArrays.from_config(cfg)
-    x = steps.plant_state(arr.x0)
-    state, clock, scr = steps.STATE_LAYOUT.buffer(), steps.CLOCK_LAYOUT.buffer(), steps.scratch()
-    n = tr.data.shape[0]
-    states = np.empty((n, 4))
-    for i in range(n):
-        states[i] = x[:4]
-        steps.plant_sample(x, tr["u"][i], arr.plant, cfg.episode.step, cfg.episode.y_limit, i + 1,
-                           cfg.episode.step_ns, state, clock, scr)
-    np.testing.assert_array_equal(states, tr.data[:, 2:6])
+    np.testing.assert_array_equal(node_step_states(cfg, tr["u"]), tr.data[:, 2:6])
     assert evaluate(np.array([MANUAL, MANUAL]), cfg)[0] == tr.score.J
 
 

@@ -147,16 +147,20 @@ def test_the_plant_node_kernel_delays_as_the_library():
     cfg = _cfg({"plant.delay": 4, "plant.valve_frequency": 180.0, "plant.valve_limit": 4e-3,
                 "plant.friction_coulomb": 200.0, "plant.friction_stribeck": 300.0, "plant.substeps": 2}, 1.5)
     tr = simulate(cfg, MANUAL)
+    np.testing.assert_array_equal(node_step_states(cfg, tr["u"]), tr.data[:, 2:6])
+
+
+def node_step_states(cfg, u) -> np.ndarray:
+    """The states [y, v, pa, pb] the plant node's kernel (steps.plant_sample) passes through, fed the commands ``u``."""
     arr = EpisodeArrays.from_config(cfg)
     x = steps.plant_state(arr.x0)
     state, clock, scr = steps.STATE_LAYOUT.buffer(), steps.CLOCK_LAYOUT.buffer(), steps.scratch()
-    n = tr.data.shape[0]
-    states = np.empty((n, 4))
-    for i in range(n):
+    states = np.empty((len(u), 4))
+    for i in range(len(u)):
         states[i] = x[:4]
-        steps.plant_sample(x, tr["u"][i], arr.plant, cfg.episode.step, cfg.episode.y_limit, i + 1,
+        steps.plant_sample(x, u[i], arr.plant, cfg.episode.step, cfg.episode.y_limit, i + 1,
                            cfg.episode.step_ns, state, clock, scr)
-    np.testing.assert_array_equal(states, tr.data[:, 2:6])
+    return states
 
 
 # --- friction ------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ from has_control.config import build_config
 from has_control.core.episode import EpisodeArrays
 from has_control.core.reference import reference, reference_series
 from has_control.wire.topics import COMMAND_LAYOUT, MISSED_LAYOUT
+from test_loop import Link
 
 
 @pytest.mark.parametrize("kind", ["sine", "step", "chirp", "road", "zero"])
@@ -72,36 +73,21 @@ def test_the_run_figure_draws_the_run_it_is_given(tmp_path):
     assert np.array_equal(cut.run.data, trace.data[keep]) and 0 < len(cut.run) < len(trace)
 
 
-class _Link:
-    """Plant and controller processes in one queue, without ROS, keeping what
-    each publishes as a recorder's tap would: states, commands, internals."""
+class _Link(Link):
+    """test_loop's link, keeping what each process publishes as a recorder's
+    tap would: states, commands, internals."""
 
     def __init__(self, drop=lambda i: False):
-        from collections import deque
-        self.queue, self.drop = deque(), drop
+        super().__init__(drop)
         self.taken = {"state": [], "command": [], "internals": [], "missed": []}
 
     def publish(self, state, true_state, clock) -> bool:
         self.taken["state"].append(state)
-        self.queue.append(("state", state))
-        return True
-
-    def resend(self, state) -> None:
-        self.queue.append(("state", state))
-
-    def connected(self) -> bool:
-        return True
+        return super().publish(state, true_state, clock)
 
     def command(self, data: bytes) -> None:
-        from has_control.wire.codec import get_stamp
         self.taken["command"].append(data)
-        if not self.drop(int(get_stamp(data)) // 300_000):
-            self.queue.append(("command", data))
-
-    def spin_once(self, timeout_sec: float = 0.0) -> None:
-        if self.queue:
-            kind, data = self.queue.popleft()
-            (self.port.on_state if kind == "state" else self.plant.on_command)(data)
+        super().command(data)
 
 
 def _loop(cfg, schedule, samples, drop=lambda i: False):
