@@ -22,6 +22,9 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 _domain = [100 + os.getpid() % 60]
 
+#: A scenario file of two scenarios: the nominal plant and a heavy one (1 800 kg).
+NOM = "scenarios:\n  nominal: {}\n  heavy: {plant.mass: 1800.0}\n"
+
 #: The command line on a real interpreter (``python -m has_control.cli``): for the few tests that prove
 #: the entry point, a signal or a second process; argument checks call ``has_control.cli.main`` in-process.
 CLI = [sys.executable, "-m", "has_control.cli"]

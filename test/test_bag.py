@@ -1,17 +1,22 @@
 """MCAP bags: what the recorder writes, scoring from it, other readers, bad files, replay."""
 import json
+import shutil
 import threading
 import time
 
 import numpy as np
 import pytest
-from conftest import cli, run_main
+from conftest import cli, one_line, run_main
 import rclpy
 import yaml
 
 from has_control.wire import cdr
-from has_control.bag import BagError, read_bag, score_bag, typestore
+from has_control.bag import (PARAMETERS_KEY, BagError, BagWriter, parameters_json, read_bag, score_bag, typestore,
+                             write_trace)
+from has_control.cli import main
+from has_control.config import with_horizon
 from has_control.core.episode import simulate
+from has_control.core.params import Config
 
 HORIZON = 1.5
 N = 5000
@@ -287,3 +292,55 @@ def test_an_edited_or_damaged_metadata_yaml_is_never_used_silently(recorded, tmp
     said.clear()
     read_bag(d, on_warning=said.append)
     assert said == []
+
+
+@pytest.fixture(scope="module")
+def bag0(tmp_path_factory):
+    cfg = with_horizon(Config(), 1.2)
+    d = tmp_path_factory.mktemp("h3") / "bag0"
+    w = BagWriter(d, {PARAMETERS_KEY: parameters_json(cfg)})
+    write_trace(w, simulate(cfg), cfg)
+    w.close()
+    return d
+
+
+def _edited(bag0, tmp_path, edit):
+    d = tmp_path / "bag"
+    shutil.copytree(bag0, d)
+    doc = yaml.safe_load((d / "metadata.yaml").read_text())
+    edit(doc["rosbag2_bagfile_information"])
+    (d / "metadata.yaml").write_text(yaml.safe_dump(doc, width=10**9))
+    return d
+
+
+@pytest.mark.parametrize("value, why", [
+    ("[1, 2]", "not an array"), ("5", "not a number"), ('"abc"', "not a string"), ("null", "not null"),
+    ("[" * 100_000 + "]" * 100_000, "nested deeper"), ('{"a": {"b": 1}}', "a value or a list"),
+    ("{", "not JSON"),
+])
+def test_stored_parameters_that_are_not_an_object_are_one_line(bag0, tmp_path, capsys, value, why):
+    d = _edited(bag0, tmp_path, lambda info: info["custom_data"].__setitem__(PARAMETERS_KEY, value))
+    one_line(capsys, ["score", d], str(d), PARAMETERS_KEY, why, warnings=True)   # and: "differs from the MCAP's"
+    assert main(["bag-info", str(d)]) == 0
+    assert f"{PARAMETERS_KEY} (invalid: " in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("custom", [[1, 2], "abc", {"k": [1, 2]}, {"k": {"a": 1}}])
+def test_custom_data_that_is_not_a_map_of_strings_is_one_line(bag0, tmp_path, capsys, custom):
+    d = _edited(bag0, tmp_path, lambda info: info.__setitem__("custom_data", custom))
+    for cmd in ("score", "bag-info"):
+        one_line(capsys, [cmd, d], "metadata.yaml: custom_data", warnings=True)
+
+
+@pytest.mark.ros
+def test_replay_refuses_a_step_that_does_not_fit_the_recorded_stamps_up_front(bag0, tmp_path):
+    from has_control.nodes.replay import replay_controller
+
+    def other_step(info):
+        flat = json.loads(info["custom_data"][PARAMETERS_KEY])
+        flat["simulation.step"] = 7e-4
+        info["custom_data"][PARAMETERS_KEY] = json.dumps(flat)
+    d = _edited(bag0, tmp_path, other_step)
+    with pytest.raises(BagError, match=r"off the grid of simulation.step = 0.0007 s") as info:
+        replay_controller(d, context=object())          # refused before any node: the context is never used
+    assert "\n" not in str(info.value)

@@ -1,5 +1,6 @@
 """The node graph: same trace as the library, parameters, namespaces, fail-safe."""
 import math
+import threading
 import time
 
 import numpy as np
@@ -295,3 +296,35 @@ def test_killing_the_controller_mid_run_in_realtime_mode(context, domain_id):
     # under control again (across processes a rare run of late answers may still centre a sample)
     assert np.mean(u[-3000:] != 0.0) > 0.95
     assert abs(plant.x[0]) < 0.2                                      # and still sane
+
+
+@pytest.mark.ros
+def test_the_controller_builds_a_new_road_off_its_executor(context, monkeypatch):
+    import types
+
+    from rclpy.parameter import Parameter
+
+    import has_control.loop.controller as controller_process     # the process builds the road, the node hosts it
+    import has_control.nodes.controller_node as controller_node
+    names = []
+
+    class Recorded(threading.Thread):
+        def __init__(self, *args, **kwargs):
+            names.append(kwargs.get("name"))
+            super().__init__(*args, **kwargs)
+    monkeypatch.setattr(controller_process, "threading", types.SimpleNamespace(Thread=Recorded, Lock=threading.Lock))
+    node = controller_node.ControllerNode(context=context)
+    try:
+        assert node.set_parameters_atomically([Parameter("reference.kind", value="road"),
+                                               Parameter("reference.cutoff", value=1600.0),
+                                               Parameter("reference.seed", value=987)]).successful
+        assert node.set_parameters([Parameter("gains.k1", value=500.0)])[0].successful
+        deadline = time.monotonic() + 60
+        while (node._pending is None or node._pending[0].gains.k1 != 500.0) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        cfg, arrays = node._pending
+        assert "controller-road" in names                       # the first road was built on a thread
+        assert cfg.reference.cutoff == 1600.0 and cfg.gains.k1 == 500.0     # the newest set won
+        assert arrays.reference.size > 4 * cfg.episode.samples
+    finally:
+        node.destroy_node()

@@ -6,6 +6,7 @@ import sys
 import pytest
 import rclpy
 
+from has_control.cli import main
 from has_control.nodes.controller_node import ControllerNode
 
 
@@ -115,3 +116,33 @@ def test_every_node_parameter_comes_from_a_table(context):
                 assert desc.additional_constraints == descriptor(tables[name]).additional_constraints, name
         finally:
             node.destroy_node()
+
+
+@pytest.mark.parametrize("node", ["plant", "controller", "tuner"])
+def test_a_bad_params_file_at_node_start_up_is_one_line_naming_it(node, tmp_path, capsys):
+    files = {"nope.yaml": None, "bad.yaml": "a: [\n", "nops.yaml": "/**:\n  gains: {k1: 1.0}\n",
+             "extra.yaml": "/**:\n  ros__parameters:\n    gains: {k1: 400.0}\nextra: 1\n",
+             "mixed.yaml": "/**:\n  ros__parameters:\n    gains: {k1: [1, \"x\"]}\n",
+             "twice.yaml": "/**:\n  ros__parameters:\n    gains.k1: 400.0\n    gains: {k1: 500.0}\n"}
+    (tmp_path / "adir").mkdir()
+    for name, text in files.items():
+        if text is not None:
+            (tmp_path / name).write_text(text)
+    for name in [*files, "adir"]:
+        with pytest.raises(SystemExit) as info:
+            main([node, "--ros-args", "--params-file", str(tmp_path / name)])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and len(err.strip().splitlines()) == 1, err
+        assert str(tmp_path / name) in err and "Traceback" not in err, err
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("node", ["plant", "controller"])
+def test_arguments_rcl_refuses_at_node_start_up_are_one_line(node, capfd):
+    """rcl logs its own [ERROR] line on fd 2 before it raises: held back, so ours is the one line."""
+    for ros_args in (["-p"], ["-p", "gains.k1:=["]):
+        with pytest.raises(SystemExit) as info:
+            main([node, "--ros-args", *ros_args])
+        lines = capfd.readouterr().err.strip().splitlines()
+        assert info.value.code == 2 and len(lines) == 1, lines
+        assert lines[0].startswith(f"has-control {node}: error: ROS refused the arguments: "), lines

@@ -1,0 +1,98 @@
+"""Tuning sessions on disk (has_control.tuning.session): a hand-edited or damaged session is refused in one
+line naming the culprit, or resumed from its last good iteration; a stored result without its keys is not used."""
+import json
+import shutil
+
+import pytest
+from conftest import one_line, stopped_session
+
+from has_control.bag import BagWriter, read_bag
+from has_control.cli import main
+
+
+@pytest.fixture(scope="module")
+def session3(tmp_path_factory):
+    """A session of 3 iterations of 4 particles, stopped (bag closed) after 2."""
+    return stopped_session(tmp_path_factory.mktemp("sessions") / "s", particles=4, iterations=3)
+
+
+def _rewrite(src, dst, topic, index, edit, copy=False):
+    """A copy of the session ``src`` in ``dst`` with message ``index`` of
+    ``topic`` (a JSON object) edited by ``edit`` (returning an object or JSON
+    text), its CRCs valid: as a hand edit would leave it."""
+    from has_control.bag import STRING, QosSpec
+    from has_control.tuning.session import ITERATION, RESULT, SESSION, SETTINGS, SWARM, _json, _string
+    bag = read_bag(src / SESSION)
+    if copy:
+        shutil.copytree(src, dst)
+        shutil.rmtree(dst / SESSION)
+    else:
+        dst.mkdir()
+    w = BagWriter(dst / SESSION, dict(bag.custom_data))
+    for t in (SETTINGS, ITERATION, SWARM, RESULT):
+        w.add_topic(t, STRING, QosSpec(depth=10, transient_local=t == SETTINGS))
+    seen = {}
+    for t_ns, t, data in sorted((t_ns, t, data) for t in (SETTINGS, ITERATION, SWARM, RESULT)
+                                for t_ns, data in bag.messages.get(t, [])):
+        i = seen[t] = seen.get(t, -1) + 1
+        if t == topic and i == index:
+            new = edit(_json(data))
+            data = _string(new if isinstance(new, str) else json.dumps(new))
+        w.write(t, t_ns, data)
+    w.close()
+    return dst
+
+
+def _deep(n=100_000):
+    return "[" * n + "]" * n
+
+
+@pytest.mark.parametrize("edit, culprit", [
+    (lambda s: dict(s, parameters=[1, 2]), "parameters = [1, 2]"),
+    (lambda s: dict(s, parameters="abc"), "parameters = 'abc'"),
+    (lambda s: dict(s, tuning=dict(s["tuning"], seed=-1)), "swarm.seed"),
+    (lambda s: dict(s, tuning=dict(s["tuning"], lower=[-5.0, 150.0, 150.0])), "swarm.lower"),
+    (lambda s: dict(s, tuning=dict(s["tuning"], particles=6)), "'particles': unknown key"),
+    (lambda s: dict(s, tuning=dict(s["tuning"], scenarios=[{"name": "a", "overrides": {"adaptation.gain": 1.0}}],
+                                   aggregate="mean")), "adaptation.gain"),
+    (lambda s: dict(s, tuning=dict(s["tuning"], scenarios=[{"name": "a", "overrides": {}}], aggregate="")),
+     "aggregate"),
+    (lambda s: dict(s, evaluator=["x"]), "evaluator"),
+    (lambda s: json.dumps(dict(s, parameters="DEEP")).replace('"DEEP"', _deep()), "no readable"),
+])
+def test_hand_edited_session_settings_are_one_line(session3, tmp_path, capsys, edit, culprit):
+    from has_control.tuning.session import SETTINGS
+    d = _rewrite(session3, tmp_path / "s", SETTINGS, 0, edit)
+    one_line(capsys, ["tune", "--resume", d], culprit, "cannot resume")
+
+
+@pytest.mark.parametrize("topic, edit", [
+    ("/tuner/swarm", lambda x: dict(x, x=x["x"][:2], v=x["v"][:2], pbest_x=x["pbest_x"][:2],
+                                    pbest_f=x["pbest_f"][:2])),              # 2 particles in a swarm of 4
+    ("/tuner/swarm", lambda x: dict(x, seed=-1)),
+    ("/tuner/swarm", lambda x: dict(x, settings=dict(x["settings"], particles=2))),
+    ("/tuner/iteration", lambda r: dict(r, positions=r["positions"][:2], costs=r["costs"][:2])),
+    ("/tuner/iteration", lambda r: json.dumps(dict(r, costs="DEEP")).replace('"DEEP"', _deep())),
+])
+@pytest.mark.system
+def test_stored_iterations_that_do_not_fit_the_session_are_damaged_ones(session3, tmp_path, capsys, topic, edit):
+    d = _rewrite(session3, tmp_path / "s", topic, 1, edit)           # the second iteration's
+    rc = main(["tune", "--resume", str(d), "--json"])
+    err = capsys.readouterr().err
+    assert rc == 0 and "Traceback" not in err, err
+    assert "resuming from iteration 1, the last good one" in err, err
+
+
+@pytest.mark.system
+def test_a_stored_result_without_its_keys_is_not_used(tmp_path, capsys):
+    from has_control.tuning.session import RESULT, RESULT_FILE
+    done = tmp_path / "done"
+    assert main(["tune", "--variant", "pso-cp-tvac",
+                 "--particles", "2", "--iterations", "2", "--duration", "1.2", "--out", str(done)]) == 0
+    (done / RESULT_FILE).unlink()
+    d = _rewrite(done, tmp_path / "s", RESULT, 0, lambda r: {}, copy=True)
+    capsys.readouterr()
+    rc = main(["tune", "--resume", str(d), "--json"])
+    cap = capsys.readouterr()
+    assert rc == 0 and "Traceback" not in cap.err, cap.err
+    assert json.loads(cap.out)["variant"] and (d / RESULT_FILE).exists()
