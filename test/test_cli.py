@@ -1,13 +1,17 @@
-"""has-control simulate: JSON keys, errors as one line and exit status 2 (in-process, and once on a real
-interpreter: the entry point prints the one line, no traceback)."""
+"""The command line's entry point: has-control simulate's JSON keys, errors as one line and exit status 2
+(in-process, and once on a real interpreter: the entry point prints the one line, no traceback), out of
+memory and a closed standard output; the live view's --foxglove-wait checked before any run."""
 import json
 import subprocess
 import sys
+import time
 
 import pytest
-from conftest import run_main
+from conftest import CLI, one_line, run_main
 
 from test_episode import PINNED
+
+from has_control.cli import main
 
 
 def run(*args):
@@ -61,3 +65,43 @@ def test_bad_config_file_fails_in_one_line(tmp_path):
     r = run("simulate", "--config", str(p))
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip() == f"has-control: error: {p}: actuator.mass = 0: must be > 0"
+
+
+def test_out_of_memory_is_one_line_and_exit_2_even_with_a_thread_left():
+    """The shutdown after a MemoryError could wait for anything (here a thread that
+    sleeps a minute); the program leaves at once."""
+    code = ("import sys, threading, time\n"
+            "import has_control.cli.simulate as s\n"
+            "def run(args):\n"
+            "    threading.Thread(target=time.sleep, args=(60,)).start()\n"
+            "    raise MemoryError\n"
+            "s.run = run\n"
+            "sys.argv = ['has-control', 'simulate']\n"
+            "from has_control.cli.main import main\n"
+            "sys.exit(main())\n")
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=50)
+    assert r.returncode == 2 and r.stderr.strip() == "has-control: error: out of memory", r.stderr
+    assert time.monotonic() - t0 < 30
+
+
+def test_a_closed_standard_output_ends_quietly_with_141():
+    """As ``yes | head`` does: no "(path unknown): Broken pipe", no traceback; status 128 + SIGPIPE."""
+    p = subprocess.Popen(CLI + ["simulate", "--duration", "2", "--json"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.close()                                         # the reader is gone before the answer
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 141 and err == "", err
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "1e308", "-1", "3601"])
+def test_foxglove_wait_is_a_bounded_number(capsys, value):
+    with pytest.raises(SystemExit) as e:
+        main(["stack", "--foxglove", "--foxglove-wait", value])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert "--foxglove-wait" in err and repr(value) in err and "0 .. 3600" in err
+
+
+def test_foxglove_wait_without_foxglove_is_refused(capsys):
+    one_line(capsys, ["stack", "--foxglove-wait", "3"], "--foxglove-wait 3", "only with --foxglove")
