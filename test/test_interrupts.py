@@ -185,3 +185,26 @@ def test_a_signal_to_a_dask_run_is_one_line_while_another_program_holds_port_878
     finally:
         holder.close()
     assert p.returncode == 130 and err.strip().splitlines() == ["has-control: interrupted"], err[:3000]
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_a_signal_during_a_recorded_stack_leaves_a_clean_bag(tmp_path, signame, domain_id):
+    import os
+    import signal
+    from has_control.bag import read_bag
+    bag = tmp_path / "run"
+    p = subprocess.Popen([sys.executable, "-m", "has_control.cli", "stack", "--duration", "600", "--record", bag],
+                         env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    end = time.monotonic() + 120
+    while time.monotonic() < end and not (bag / "run.mcap").exists():
+        time.sleep(0.1)
+    time.sleep(1.5)                                       # mid-run
+    p.send_signal(getattr(signal, signame))
+    err = p.communicate(timeout=60)[1]
+    assert p.returncode == 130 and err.strip() == "has-control: interrupted"
+    b = read_bag(bag)
+    assert b.complete and (bag / "metadata.yaml").exists()
+    n = b.count("/state")
+    assert n > 1000 and b.count("/command") in (n - 1, n)  # every sample taken before the signal
