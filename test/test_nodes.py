@@ -1,5 +1,7 @@
 """The node graph: same trace as the library, parameters, namespaces, fail-safe."""
 import math
+import subprocess
+import sys
 import threading
 import time
 
@@ -9,6 +11,7 @@ from conftest import spin_until
 import rclpy
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
 
 from has_control.core.episode import simulate
 
@@ -18,11 +21,7 @@ from has_control.nodes.plant_node import PlantNode
 from has_control.nodes.stack import run_stack
 from has_control.core.params import Config
 from has_control.common.errors import HasControlError
-from has_control.nodes.runtime import CONTROL_QOS
-from has_control.nodes.runtime import state_message
-from sensor_msgs.msg import JointState
-import subprocess
-import sys
+from has_control.nodes.runtime import CONTROL_QOS, state_message
 
 pytestmark = [pytest.mark.ros]
 
