@@ -423,3 +423,16 @@ def test_a_command_of_another_layout_is_read_by_name_only_on_the_sample_grid(con
         assert plant.command_sample == 2 and plant.malformed_commands == 1
     finally:
         plant.destroy_node()
+
+
+@pytest.mark.ros
+def test_controller_rejects_a_road_it_cannot_build_and_keeps_the_old_reference(context):
+    from has_control.nodes.controller_node import ControllerNode
+    node = ControllerNode(context=context)
+    try:
+        res = node.set_parameters_atomically([Parameter("reference.kind", value="road"),
+                                              Parameter("reference.speed", value=1.0e300)])
+        assert not res.successful and "reference.cutoff" in res.reason
+        assert node.get_parameter("reference.kind").value == "sine" and node._pending is None
+    finally:
+        node.destroy_node()

@@ -1,13 +1,16 @@
 """Roads (has_control.core.road, the road reference): the summed and the tabulated road are the same road,
-their memory is bounded before any table is built, and a cached road is found again."""
+their memory is bounded before any table is built, a cached road is found again, and road parameters far
+out of range are one line naming the parameter."""
 import math
+import re
 
 import numpy as np
 import pytest
 from conftest import one_line
 
+from has_control.cli import main
 from has_control.common.errors import ConfigError
-from has_control.config import with_horizon
+from has_control.config import load_config, with_horizon
 from has_control.core.episode import evaluate_configs
 from has_control.core.params import Config, Episode, N_REFERENCE, REF_TERMS, Reference
 from has_control.core.reference import check_road_memory
@@ -114,3 +117,18 @@ def test_the_road_cache_holds_more_than_32_roads():
     cfgs = [with_horizon(Config(reference=Reference(kind="road", seed=1000 + i)), 1.2) for i in range(40)]
     evaluate_configs([[400.0, 400.0, 400.0]], cfgs)
     assert all(road_cached(c.reference, c.episode) for c in cfgs)
+
+
+@pytest.mark.parametrize("road,culprit", [
+    ("{kind: road, speed: 1.0e300}", "reference.cutoff = 2.0: no road component"),
+    ("{kind: road, cutoff: 1.0e20}", "reference.cutoff = 1e+20: must be below the Nyquist"),
+    ("{kind: road, speed: 1.0e308, cutoff: 1.0}", "reference.cutoff = 1.0: no road component"),
+])
+def test_road_parameters_far_out_of_range_are_one_line(tmp_path, capsys, road, culprit):
+    p = tmp_path / "p.yaml"
+    p.write_text(f"/**:\n  ros__parameters:\n    reference: {road}\n    simulation: {{horizon: 1000.0}}\n")
+    with pytest.raises(ConfigError, match=re.escape(culprit)):
+        load_config([p])
+    assert main(["simulate", "--config", str(p)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and culprit in err, err

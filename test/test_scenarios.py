@@ -16,7 +16,7 @@ from has_control.common.errors import ConfigError
 from has_control.core.scenarios import Aggregate, evaluate_scenarios, parse_aggregate
 from has_control.config import Scenario, load_scenarios
 from has_control.tuning.session import run_session
-from has_control.tuning.tuner import Tuning, tune
+from has_control.tuning.tuner import Tuning, tune, tuning_from_json, tuning_json
 
 SHIPPED = CONFIG_DIR / "scenarios.yaml"
 SMALL = """
@@ -200,3 +200,21 @@ def test_every_front_end_checks_scenarios_and_aggregate_alike(tmp_path, capsys, 
                          "parameter aggregate")):
         with pytest.raises(ConfigError, match=why):
             TunerNode(context=context, parameter_overrides=params)
+
+
+def test_robustness_refuses_one_label_for_two_gain_sets(tmp_path, capsys):
+    p = tmp_path / "s.yaml"
+    p.write_text("scenarios:\n  nominal: {}\n")
+    args = ["robustness", "--scenarios", str(p), "--duration", "1.2", "--gains", "400", "400", "400",
+            "--label", "a", "--gains", "150", "158", "162", "--label", "a"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "'a'" in err, err
+
+
+def test_a_stored_aggregate_is_the_aggregate_bit_for_bit():
+    for agg in (Aggregate("cvar", 0.2000001), Aggregate("cvar", 0.1 + 0.2), Aggregate("cvar", 1 / 3)):
+        assert parse_aggregate(str(agg)) == agg
+        t = Tuning().replace(scenarios=(Scenario("a"),), aggregate=agg)
+        assert tuning_from_json(tuning_json(t)).aggregate == agg
+    assert str(Aggregate("cvar", 0.2)) == "cvar:0.2" and str(Aggregate("cvar", 1.0)) == "cvar:1"

@@ -8,6 +8,7 @@ from conftest import one_line, stopped_session
 
 from has_control.bag import BagWriter, read_bag
 from has_control.cli import main
+from has_control.tuning.tuner import Tuning, tuning_json
 
 
 @pytest.fixture(scope="module")
@@ -96,3 +97,16 @@ def test_a_stored_result_without_its_keys_is_not_used(tmp_path, capsys):
     cap = capsys.readouterr()
     assert rc == 0 and "Traceback" not in cap.err, cap.err
     assert json.loads(cap.out)["variant"] and (d / RESULT_FILE).exists()
+
+
+def test_a_session_with_damaged_scenarios_is_one_line(tmp_path, monkeypatch):
+    import has_control.tuning.session as session
+    from has_control.bag import BagError
+    from has_control.core.params import Config
+
+    def damaged(t):
+        return dict(tuning_json(t), scenarios=[{"name": "a", "overrides": [1, 2]}], aggregate="mean")
+    monkeypatch.setattr(session, "tuning_json", damaged)
+    session.Session(tmp_path / "s", Tuning(), Config()).close()
+    with pytest.raises(BagError, match="cannot resume"):
+        session.resume(tmp_path / "s")
