@@ -338,7 +338,7 @@ def test_scaling_model_of_the_bench():
 
 @pytest.mark.cluster
 def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
-    """Issue #14's "done when": ``tune --scenarios config/scenarios.yaml --aggregate cvar:0.2
+    """Robust tuning on Dask: ``tune --scenarios config/scenarios.yaml --aggregate cvar:0.2
     --dask local:2 --json`` gives the result it gives without --dask (a short run of it)."""
     from has_control.cli import main
     from has_control.config import CONFIG_DIR

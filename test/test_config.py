@@ -88,7 +88,7 @@ def test_sections_apply_to_the_nodes_they_name_as_rcl_decides(tmp_path):
 
 
 def test_the_shipped_files_comments_derive_from_the_parameter_tables():
-    """One table per component (#28 item 4): each value line's comment in config/*.yaml is its Param's
+    """One table per component: each value line's comment in config/*.yaml is its Param's
     meaning and unit (regenerate with has_control.config.yaml_with_comments after editing a table)."""
     from has_control.config import CONFIG_DIR, CONFIG_TABLE, yaml_with_comments
     from has_control.tuning.parameters import TUNING_TABLE

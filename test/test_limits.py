@@ -1,4 +1,4 @@
-"""Issue #11, class B: numbers and files that are refused with one line and
+"""Resource limits: numbers and files that are refused with one line and
 exit 2 (resource limits before allocation, sizes before parsing, regular files
 only), and Ctrl-C in the first second ending with one line and exit 130."""
 import os

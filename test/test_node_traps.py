@@ -26,7 +26,7 @@ def test_node_help_prints_usage_and_every_parameter_without_starting_a_node(node
     assert "ready" not in r.stdout
     if node != "tuner":                                       # the true default, not the help's own override
         assert any(line.startswith("  autostart = True: ") for line in params)
-    else:                                                     # real descriptions and the true choices (#30 item 6)
+    else:                                                     # real descriptions and the true choices
         variant = next(line for line in params if line.startswith("  swarm.variant = "))
         assert "cma-restarts" in variant and "one of: cma-restarts, pso, pso-cp, pso-cp-tvac" in variant
         assert not any(line.split(" = ")[0].strip() == line.rsplit(": ", 1)[-1].strip() for line in params)

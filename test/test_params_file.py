@@ -50,7 +50,7 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
     controller, plant = ControllerNode(context=context), PlantNode(context=context)
     try:
         k1, kind, step = controller.describe_parameters(["gains.k1", "reference.kind", "simulation.step"])
-        # (0, 1e6]: an open bound has no FloatingPointRange (it would need a subnormal Min, #30 item 6)
+        # (0, 1e6]: an open bound has no FloatingPointRange (it would need a subnormal Min)
         assert "[1/s]" in k1.description and k1.additional_constraints == "> 0 and <= 1e+06"
         assert not k1.floating_point_range and not k1.read_only
         assert "sine" in kind.additional_constraints and "chirp" in kind.additional_constraints
@@ -74,7 +74,7 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
 
 @pytest.mark.ros
 def test_a_whole_number_for_a_double_is_taken_at_start_up_and_live_settings_apply(context):
-    """#30 item 6: -p gains.k1:=300 (an integer) starts the controller with 300.0; a setting the
+    """-p gains.k1:=300 (an integer) starts the controller with 300.0; a setting the
     node accepts at runtime takes effect (publish_internals, failsafe_samples), none is ignored."""
     from rclpy.parameter import Parameter
     from has_control.nodes.plant_node import PlantNode
@@ -96,7 +96,7 @@ def test_a_whole_number_for_a_double_is_taken_at_start_up_and_live_settings_appl
 
 @pytest.mark.ros
 def test_every_node_parameter_comes_from_a_table(context):
-    """#28 item 4: a node declares nothing that its component's table does not hold (rclpy's
+    """One table per component: a node declares nothing that its component's table does not hold (rclpy's
     use_sim_time and start_type_description_service, the live view's foxglove_port aside), and
     each descriptor is the table's."""
     from has_control.config import CONFIG_TABLE

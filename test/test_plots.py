@@ -359,7 +359,7 @@ def test_convergence_legend_says_how_many_seeds_it_averages():
 
 
 def test_a_label_with_dollar_signs_is_drawn_as_written(tmp_path):
-    # issue #31: a bag named 'a$b_{$x' (or any label with '$') was parsed as mathtext and raised
+    # a bag named 'a$b_{$x' (or any label with '$') was once parsed as mathtext and raised
     from has_control.plots.identification import plot_validation
     t = np.arange(50) * 3e-4
     states = np.column_stack([np.sin(t), np.cos(t), 5e6 + t, 4e6 + t])

@@ -1,4 +1,4 @@
-"""Issue #11, class D: results that a kill or a race could strand or overwrite.
+"""Results that a kill or a race could strand or overwrite.
 Result files are written then renamed, a session directory is locked,
 outputs are checked before the work starts and never replaced without
 --force, an interrupted final write is finished by --resume, and every I/O

@@ -64,7 +64,7 @@ def test_road_memory_beyond_the_limit_is_refused_before_any_table(tmp_path, caps
 def test_a_road_at_the_shipped_cutoff_costs_about_what_a_sine_does_in_memory():
     """Summed in the kernel, a 10 s road at the shipped 2 Hz cutoff holds a few
     hundred bytes (a table would hold 1 MiB), and 100 of them cost about what
-    100 sine scenarios do to evaluate (issue: at most ~10x)."""
+    100 sine scenarios do to evaluate (at most ~10x)."""
     import tracemalloc
 
     from has_control.core.reference import reference_array

@@ -1,4 +1,4 @@
-"""Scenario sets, the robust aggregate and robust tuning (issue #14, item 2)."""
+"""Scenario sets and scenario files, the robust aggregate and robust tuning, robustness labels."""
 from __future__ import annotations
 
 import json

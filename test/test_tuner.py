@@ -133,7 +133,7 @@ def test_bad_tuner_scenarios_are_one_line(domain_id, params, culprit):
 
 
 def test_the_validation_block_agrees_only_within_the_tolerance():
-    """#30 item 3 without ROS: graph = library agrees; a 70x gap (the issue's 2.03e-3 against
+    """The validation block without ROS: graph = library agrees; a 70x gap (a reported 2.03e-3 against
     2.91e-5) disagrees and names the lane parameter that differs; inf against inf agrees."""
     from has_control.tuning.validation import (disagreement_status, lane_differences, validation_block,
                                                validation_line)
