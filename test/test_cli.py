@@ -1,13 +1,14 @@
 """The command line's entry point: has-control simulate's JSON keys, errors as one line and exit status 2
 (in-process, and once on a real interpreter: the entry point prints the one line, no traceback), out of
-memory and a closed standard output; the live view's --foxglove-wait checked before any run."""
+memory and a closed standard output; the live view's --foxglove-wait checked before any run; numbers out of
+range and bad arguments refused in one line before any work."""
 import json
 import subprocess
 import sys
 import time
 
 import pytest
-from conftest import CLI, one_line, run_main
+from conftest import CLI, argparse_error, one_line, run_main
 
 from test_episode import PINNED
 
@@ -105,3 +106,36 @@ def test_foxglove_wait_is_a_bounded_number(capsys, value):
 
 def test_foxglove_wait_without_foxglove_is_refused(capsys):
     one_line(capsys, ["stack", "--foxglove-wait", "3"], "--foxglove-wait 3", "only with --foxglove")
+
+
+@pytest.mark.parametrize("argv, culprits", [
+    (["simulate", "--duration", "1e9"], ["--duration", "simulation.horizon", "limit"]),
+    (["tune", "--duration", "1e308"], ["--duration", "simulation.horizon", "limit"]),
+    (["tune", "--particles", "99999999999"], ["swarm.particles", "limit"]),
+    (["tune", "--particles", "9" * 400], ["swarm.particles", "limit"]),
+    (["tune", "--particles", "100000", "--iterations", "1000"], ["swarm.iterations", "evaluations"]),
+    (["tune", "--seed", "-1"], ["swarm.seed = -1"]),
+    (["simulate", "--gains", "2e6", "150", "150"], ["--gains: K1 = '2e6'", "1e+06"]),
+    (["stack", "--gains", "2e6", "150", "150"], ["--gains: K1 = '2e6'", "1e+06"]),
+    (["simulate", "--gains", "inf", "150", "150"], ["--gains: K1 = 'inf'"]),
+])
+def test_numbers_out_of_range_are_one_line(capsys, argv, culprits):
+    one_line(capsys, argv, *culprits)
+
+
+@pytest.mark.parametrize("argv, culprits", [
+    (["replay", "--rate", "1e-300", "x"], ["--rate", "1e-300"]),
+    (["replay", "--rate", "nan", "x"], ["--rate"]),
+    (["replay", "--controller", "--tolerance", "-1", "x"], ["--tolerance"]),
+    (["stack", "--namespace", "a b"], ["--namespace", "'a b'"]),
+    (["stack", "--namespace", "/1x"], ["--namespace"]),
+    (["stack", "--tune", "--lanes", "/ok", "bad//ns"], ["--lanes"]),
+])
+def test_bad_arguments_are_one_argparse_line(capsys, argv, culprits):
+    argparse_error(capsys, argv, *culprits)
+
+
+def test_good_namespaces_pass():
+    from has_control.cli.args import namespace as _namespace
+    for ns in ("", "/", "/sim0", "sim0", "/a/b_2", "_x"):
+        assert _namespace(ns) == ns

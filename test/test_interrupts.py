@@ -208,3 +208,16 @@ def test_a_signal_during_a_recorded_stack_leaves_a_clean_bag(tmp_path, signame, 
     assert b.complete and (bag / "metadata.yaml").exists()
     n = b.count("/state")
     assert n > 1000 and b.count("/command") in (n - 1, n)  # every sample taken before the signal
+
+
+@pytest.mark.ros
+def test_ctrl_c_in_the_first_second_is_one_line_and_130():
+    for args in (["tune", "--variant", "pso-cp-tvac", "--iterations", "1", "--particles", "2"],
+                 ["stack", "--duration", "2"]):
+        p = subprocess.Popen([sys.executable, "-m", "has_control.cli", *args],
+                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+        time.sleep(0.4)
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 130 and "Traceback" not in err, (args[0], err)
+        assert err.strip().splitlines() == ["has-control: interrupted"], err
