@@ -114,6 +114,13 @@ def run_main(capsys, *args):
     return SimpleNamespace(returncode=code, stdout=cap.out, stderr=cap.err)
 
 
+def main_result(capsys, *argv):
+    """``has_control.cli.main(argv)`` in this process: (status, stdout, stderr)."""
+    rc = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
 def one_error_line(rc, err, *culprits, code=2, warnings=False):
     """Status ``rc`` is ``code`` and ``err`` is one line naming ``culprits``, no traceback
     (``warnings``: besides lines "warning: ..." that say what was found)."""

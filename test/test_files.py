@@ -1,11 +1,14 @@
 """Outputs as has_control.common.files writes them: check_output refuses what is not a regular file (a FIFO,
 a device, a directory) before the work starts; write_atomic writes through a symlink and names the user's
-path, never its temporary file, when it fails."""
+path, never its temporary file, when it fails, and keeps the old file; a command's outputs are checked
+before its work starts."""
+import errno
 import os
 import stat
+import time
 
 import pytest
-from conftest import NOM, one_line
+from conftest import main_result, NOM, one_error_line, one_line
 
 from has_control.cli import main
 from has_control.common.errors import HasControlError
@@ -69,3 +72,31 @@ def test_check_output_refuses_unwritable_places(tmp_path):
                       ("", "empty path")):
         with pytest.raises(HasControlError, match=why):
             check_output(path, "directory" if path == tmp_path / "f" else "file")
+
+
+def test_reproduce_out_is_checked_before_the_work_starts(tmp_path, capsys):
+    f = tmp_path / "report.md"
+    f.write_text("someone's report\n")
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "report.md").write_text("someone's report\n")
+    for out, why in ((f, "not a directory"), (full, "--force")):
+        t0 = time.perf_counter()
+        rc, _, err = main_result(capsys, "reproduce", "--seeds", "1", "--particles", "2", "--iterations", "1",
+                                 "--out", out)
+        one_error_line(rc, err, str(out), why)
+        assert time.perf_counter() - t0 < 2
+    assert f.read_text() == (full / "report.md").read_text() == "someone's report\n"
+
+
+def test_write_atomic_keeps_the_old_file_and_names_the_path(tmp_path):
+    p = tmp_path / "tune.json"
+    p.write_text("old\n")
+
+    def full_disk(tmp):
+        tmp.write_text("half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+    with pytest.raises(HasControlError) as info:
+        write_atomic(p, full_disk)
+    assert str(info.value) == f"{p}: cannot write: No space left on device"
+    assert p.read_text() == "old\n" and [x.name for x in tmp_path.iterdir()] == ["tune.json"]

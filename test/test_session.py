@@ -1,13 +1,17 @@
 """Tuning sessions on disk (has_control.tuning.session): a hand-edited or damaged session is refused in one
-line naming the culprit, or resumed from its last good iteration; a stored result without its keys is not used."""
+line naming the culprit, or resumed from its last good iteration; a stored result without its keys is not used;
+a finished session is never replaced without --force, a session directory is locked, and --resume finishes
+an interrupted final write."""
 import json
 import shutil
+import time
 
 import pytest
-from conftest import one_line, stopped_session
+from conftest import main_result, one_error_line, one_line, stopped_session
 
 from has_control.bag import BagWriter, read_bag
 from has_control.cli import main
+from has_control.common.files import DirectoryLock
 from has_control.tuning.tuner import Tuning, tuning_json
 
 
@@ -110,3 +114,73 @@ def test_a_session_with_damaged_scenarios_is_one_line(tmp_path, monkeypatch):
     session.Session(tmp_path / "s", Tuning(), Config()).close()
     with pytest.raises(BagError, match="cannot resume"):
         session.resume(tmp_path / "s")
+
+
+TUNE = ["tune", "--variant", "pso-cp-tvac", "--particles", "4", "--iterations", "3", "--duration", "1.5"]
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """A finished session (tune --out) and what tune --json printed."""
+    d = tmp_path_factory.mktemp("results") / "s"
+    assert main([*TUNE, "--out", str(d), "--json"]) == 0
+    return d, json.loads((d / "tune.json").read_text())
+
+
+@pytest.mark.system
+def test_tune_out_never_replaces_a_session_without_force(finished, tmp_path, capsys):
+    d, result = finished
+    copy = tmp_path / "s"
+    shutil.copytree(d, copy)
+    before = (copy / "tune.json").read_bytes()
+    t0 = time.perf_counter()
+    rc, _, err = main_result(capsys, *TUNE, "--out", copy)
+    one_error_line(rc, err, str(copy / "session"), "--force")
+    assert time.perf_counter() - t0 < 2 and (copy / "tune.json").read_bytes() == before
+    (copy / "session").rename(copy / "elsewhere")          # tune.json alone is protected as well
+    rc, _, err = main_result(capsys, *TUNE, "--out", copy)
+    one_error_line(rc, err, str(copy / "tune.json"))
+    rc, out, err = main_result(capsys, *TUNE, "--out", copy, "--force", "--json")
+    assert rc == 0, err
+    assert json.loads((copy / "tune.json").read_text())["gains"] == result["gains"]
+
+
+def test_a_second_resume_on_a_locked_session_is_refused(finished, tmp_path, capsys):
+    d, _ = finished
+    copy = tmp_path / "s"
+    shutil.copytree(d, copy)
+    lock = DirectoryLock(copy, ".lock", "the tuning session")      # as a running tune holds it
+    try:
+        rc, _, err = main_result(capsys, "tune", "--resume", copy)
+        one_error_line(rc, err, str(copy), "in use by another process")
+        rc, _, err = main_result(capsys, *TUNE, "--out", copy, "--force")
+        one_error_line(rc, err, "in use by another process")
+    finally:
+        lock.release()
+    assert (copy / "session").is_dir() and (copy / "tune.json").exists()   # nothing touched
+
+
+@pytest.mark.system
+@pytest.mark.parametrize("cut", ["no-tune.json", "no-figures-no-tune.json", "bag-cut-in-finish"])
+def test_resume_finishes_a_session_whose_final_writes_were_interrupted(finished, tmp_path, capsys, cut):
+    d, result = finished
+    copy = tmp_path / "s"
+    shutil.copytree(d, copy)
+    (copy / "tune.json").unlink()
+    if cut == "no-figures-no-tune.json":
+        (copy / "gains.png").unlink()
+        (copy / "convergence.png").unlink()
+    if cut == "bag-cut-in-finish":                     # killed while writing the validation run
+        mcap = copy / "session" / "session.mcap"
+        mcap.write_bytes(mcap.read_bytes()[: mcap.stat().st_size * 2 // 3])
+        (copy / "session" / "metadata.yaml").unlink()
+    rc, out, err = main_result(capsys, "tune", "--resume", copy, "--json")
+    assert rc == 0 and "finished already" not in err, err
+    got = json.loads(out)
+    if cut != "bag-cut-in-finish":
+        assert got == result                           # the stored result, seconds included
+    assert {k: v for k, v in got.items() if k != "seconds"} == {k: v for k, v in result.items() if k != "seconds"}
+    assert json.loads((copy / "tune.json").read_text()) == got
+    assert (copy / "gains.png").exists() and (copy / "convergence.png").exists()
+    rc, _, err = main_result(capsys, "tune", "--resume", copy)
+    one_error_line(rc, err, "finished already")
