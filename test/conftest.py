@@ -22,6 +22,9 @@ os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 _domain = [100 + os.getpid() % 60]
 
+#: A scenario file of two scenarios: the nominal plant and a heavy one (1 800 kg).
+NOM = "scenarios:\n  nominal: {}\n  heavy: {plant.mass: 1800.0}\n"
+
 #: The command line on a real interpreter (``python -m has_control.cli``): for the few tests that prove
 #: the entry point, a signal or a second process; argument checks call ``has_control.cli.main`` in-process.
 CLI = [sys.executable, "-m", "has_control.cli"]
@@ -109,6 +112,13 @@ def run_main(capsys, *args):
         code = exit_.code
     cap = capsys.readouterr()
     return SimpleNamespace(returncode=code, stdout=cap.out, stderr=cap.err)
+
+
+def main_result(capsys, *argv):
+    """``has_control.cli.main(argv)`` in this process: (status, stdout, stderr)."""
+    rc = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
 
 
 def one_error_line(rc, err, *culprits, code=2, warnings=False):

@@ -1,17 +1,23 @@
 """MCAP bags: what the recorder writes, scoring from it, other readers, bad files, replay."""
 import json
+import shutil
+import struct
 import threading
 import time
 
 import numpy as np
 import pytest
-from conftest import cli, run_main
+from conftest import cli, one_line, run_main
 import rclpy
 import yaml
 
 from has_control.wire import cdr
-from has_control.bag import BagError, read_bag, score_bag, typestore
+from has_control.bag import (PARAMETERS_KEY, BagError, BagWriter, parameters_json, read_bag, score_bag, typestore,
+                             write_trace)
+from has_control.cli import main
+from has_control.config import build_config, with_horizon
 from has_control.core.episode import simulate
+from has_control.core.params import Config
 
 HORIZON = 1.5
 N = 5000
@@ -287,3 +293,132 @@ def test_an_edited_or_damaged_metadata_yaml_is_never_used_silently(recorded, tmp
     said.clear()
     read_bag(d, on_warning=said.append)
     assert said == []
+
+
+@pytest.fixture(scope="module")
+def bag0(tmp_path_factory):
+    cfg = with_horizon(Config(), 1.2)
+    d = tmp_path_factory.mktemp("h3") / "bag0"
+    w = BagWriter(d, {PARAMETERS_KEY: parameters_json(cfg)})
+    write_trace(w, simulate(cfg), cfg)
+    w.close()
+    return d
+
+
+def _edited(bag0, tmp_path, edit):
+    d = tmp_path / "bag"
+    shutil.copytree(bag0, d)
+    doc = yaml.safe_load((d / "metadata.yaml").read_text())
+    edit(doc["rosbag2_bagfile_information"])
+    (d / "metadata.yaml").write_text(yaml.safe_dump(doc, width=10**9))
+    return d
+
+
+@pytest.mark.parametrize("value, why", [
+    ("[1, 2]", "not an array"), ("5", "not a number"), ('"abc"', "not a string"), ("null", "not null"),
+    ("[" * 100_000 + "]" * 100_000, "nested deeper"), ('{"a": {"b": 1}}', "a value or a list"),
+    ("{", "not JSON"),
+])
+def test_stored_parameters_that_are_not_an_object_are_one_line(bag0, tmp_path, capsys, value, why):
+    d = _edited(bag0, tmp_path, lambda info: info["custom_data"].__setitem__(PARAMETERS_KEY, value))
+    one_line(capsys, ["score", d], str(d), PARAMETERS_KEY, why, warnings=True)   # and: "differs from the MCAP's"
+    assert main(["bag-info", str(d)]) == 0
+    assert f"{PARAMETERS_KEY} (invalid: " in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("custom", [[1, 2], "abc", {"k": [1, 2]}, {"k": {"a": 1}}])
+def test_custom_data_that_is_not_a_map_of_strings_is_one_line(bag0, tmp_path, capsys, custom):
+    d = _edited(bag0, tmp_path, lambda info: info.__setitem__("custom_data", custom))
+    for cmd in ("score", "bag-info"):
+        one_line(capsys, [cmd, d], "metadata.yaml: custom_data", warnings=True)
+
+
+@pytest.mark.ros
+def test_replay_refuses_a_step_that_does_not_fit_the_recorded_stamps_up_front(bag0, tmp_path):
+    from has_control.nodes.replay import replay_controller
+
+    def other_step(info):
+        flat = json.loads(info["custom_data"][PARAMETERS_KEY])
+        flat["simulation.step"] = 7e-4
+        info["custom_data"][PARAMETERS_KEY] = json.dumps(flat)
+    d = _edited(bag0, tmp_path, other_step)
+    with pytest.raises(BagError, match=r"off the grid of simulation.step = 0.0007 s") as info:
+        replay_controller(d, context=object())          # refused before any node: the context is never used
+    assert "\n" not in str(info.value)
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory):
+    """(clean, truncated, NaN) bags of a 2 s run; the damage at state 1234."""
+    d = tmp_path_factory.mktemp("replay")
+    cfg = build_config({"simulation.horizon": 2.0})
+    w = BagWriter(d / "clean", {PARAMETERS_KEY: parameters_json(cfg)})
+    write_trace(w, simulate(cfg), cfg)
+    w.close()
+    bag = read_bag(d / "clean")
+    msgs = {t: list(m) for t, m in bag.messages.items()}
+    lay = cdr.parse_joint_state_layout(msgs["/state"][0][1])
+
+    def damaged(name, change):
+        m = {t: list(v) for t, v in msgs.items()}
+        lt, b = m["/state"][1234]
+        m["/state"][1234] = (lt, change(b))
+        w = BagWriter(d / name, dict(bag.custom_data))
+        for t in m:
+            w.add_topic(t, bag.types[t])
+        w.write_batches({t: (np.array([x for x, _ in v], dtype=np.int64), [y for _, y in v]) for t, v in m.items()})
+        w.close()
+        return d / name
+
+    def nan(b):
+        bb = bytearray(b)
+        struct.pack_into("<d", bb, lay.position[0], float("nan"))
+        return bytes(bb)
+    return d / "clean", damaged("truncated", lambda b: b[:-20]), damaged("nan", nan)
+
+
+def test_replay_of_a_truncated_or_non_finite_state_is_one_line_and_exit_2(bags, capsys):
+    _, truncated, nan = bags
+    one_line(capsys, ["replay", str(truncated), "--check-code"], str(truncated), "/state: message 1234: truncated")
+    one_line(capsys, ["replay", str(nan), "--check-code"], str(nan), "/state: message 1234", "not finite")
+
+
+@pytest.mark.ros
+def test_replay_waits_for_a_subscriber_started_before_and_it_gets_the_first_state(bags, context):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import JointState
+    from has_control.nodes.replay import replay
+    clean = bags[0]
+    first = int(cdr.stamps_ns([read_bag(clean).messages["/state"][0][1]])[0])
+    node = rclpy.create_node("early_subscriber", context=context)
+    got = []
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    node.create_subscription(JointState, "/state", lambda m: got.append(
+        m.header.stamp.sec * 10**9 + m.header.stamp.nanosec), QoSProfile(depth=10000,
+                                                                         reliability=ReliabilityPolicy.RELIABLE))
+    ex = SingleThreadedExecutor(context=context)
+    ex.add_node(node)
+    stop = threading.Event()
+    spinner = threading.Thread(target=lambda: [ex.spin_once(timeout_sec=0.05) for _ in iter(stop.is_set, True)])
+    spinner.start()
+    try:
+        time.sleep(1.0)                                       # started well before the replay
+        n, _ = replay(clean, rate=5.0, topics=["/state"], context=context, subscribers=1)
+        time.sleep(1.0)
+    finally:
+        stop.set()
+        spinner.join()
+        node.destroy_node()
+    assert n == 6667 and got and got[0] == first, got[:3]
+
+
+@pytest.mark.ros
+def test_replay_without_its_subscribers_is_one_line(bags, context):
+    from has_control.nodes.replay import replay
+    with pytest.raises(BagError, match=r"--wait-for-subscribers 2: not 2 subscribers on one topic within 0.5 s"):
+        replay(bags[0], topics=["/state"], context=context, subscribers=2, subscriber_timeout=0.5)
+
+
+def test_wait_for_subscribers_is_not_for_a_controller_replay(bags, capsys):
+    one_line(capsys, ["replay", str(bags[0]), "--check-code", "--wait-for-subscribers"], "--wait-for-subscribers")

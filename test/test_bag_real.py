@@ -1,4 +1,4 @@
-"""Bags as a machine records them (issue #27): wall-clock stamps, jitter,
+"""Bags as a machine records them: wall-clock stamps, jitter,
 dropped states, the ros2_control layout, a bag of only state and command;
 and the one-line refusals (a truncated payload, a conflicting duplicate).
 
@@ -299,7 +299,7 @@ def test_ros2_control_commands_pair_by_log_time_the_first_after_each_state_wins(
                for n in notes), notes
 
 
-# --- issue #31: every reader of recorded samples, one policy ----------------------------------------
+# --- every reader of recorded samples, one policy ------------------------------------------------
 
 
 def _one_state(clean, tmp_path, name, row, column, value, topics=("/state", "/true_state")):
@@ -408,7 +408,7 @@ def test_a_bag_without_effort_is_one_line_naming_the_missing_interfaces(clean, t
 
 
 def test_a_library_warning_is_one_line_not_a_source_echo(clean, monkeypatch, capsys):
-    # issue #31: numpy's RuntimeWarnings leaked onto stderr as two lines each (message and source line)
+    # numpy's RuntimeWarnings once leaked onto stderr as two lines each (message and source line)
     import has_control.bag.score as scoring
     original = scoring.score_arrays
 
@@ -422,7 +422,7 @@ def test_a_library_warning_is_one_line_not_a_source_echo(clean, monkeypatch, cap
 
 
 def test_a_recording_longer_than_the_readers_limit_is_refused_up_front(clean, tmp_path, monkeypatch, capsys):
-    # issue #31: a 10-minute recording took 3.9 GB in identify and 3 GB in plot; the readers hold every
+    # a 10-minute recording once took 3.9 GB in identify and 3 GB in plot; the readers hold every
     # message, so a run beyond MAX_SAMPLES is refused from metadata.yaml's counts before a message is read
     import shutil
 
@@ -450,7 +450,7 @@ def test_a_recording_longer_than_the_readers_limit_is_refused_up_front(clean, tm
 
 
 def test_validation_compares_the_whole_held_out_run_around_a_bad_sample(clean, tmp_path):
-    # issue #31: with a NaN in the held-out run, --validate compared only the part before it
+    # with a NaN in the held-out run, --validate once compared only the part before it
     from has_control.identify.validate import validate
     d, cfg = clean[0], clean[1]
     full = validate(experiment_from_bag(d / "clean", on_warning=_quiet), cfg)
@@ -462,7 +462,7 @@ def test_validation_compares_the_whole_held_out_run_around_a_bad_sample(clean, t
 
 
 def test_a_joint_named_twice_in_one_state_is_one_line(clean, tmp_path, capsys):
-    # issue #31: a duplicated joint was answered with the second copy's values, uncounted
+    # a duplicated joint was once answered with the second copy's values, uncounted
     d, cfg, tr, x, types, msgs, custom = clean
     st = list(msgs["/state"])
     _, pos, vel, eff = cdr.joint_states([b for _, b in st])

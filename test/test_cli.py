@@ -1,13 +1,18 @@
-"""has-control simulate: JSON keys, errors as one line and exit status 2 (in-process, and once on a real
-interpreter: the entry point prints the one line, no traceback)."""
+"""The command line's entry point: has-control simulate's JSON keys, errors as one line and exit status 2
+(in-process, and once on a real interpreter: the entry point prints the one line, no traceback), out of
+memory and a closed standard output; the live view's --foxglove-wait checked before any run; numbers out of
+range and bad arguments refused in one line before any work."""
 import json
 import subprocess
 import sys
+import time
 
 import pytest
-from conftest import run_main
+from conftest import CLI, argparse_error, one_line, run_main
 
 from test_episode import PINNED
+
+from has_control.cli import main
 
 
 def run(*args):
@@ -61,3 +66,76 @@ def test_bad_config_file_fails_in_one_line(tmp_path):
     r = run("simulate", "--config", str(p))
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip() == f"has-control: error: {p}: actuator.mass = 0: must be > 0"
+
+
+def test_out_of_memory_is_one_line_and_exit_2_even_with_a_thread_left():
+    """The shutdown after a MemoryError could wait for anything (here a thread that
+    sleeps a minute); the program leaves at once."""
+    code = ("import sys, threading, time\n"
+            "import has_control.cli.simulate as s\n"
+            "def run(args):\n"
+            "    threading.Thread(target=time.sleep, args=(60,)).start()\n"
+            "    raise MemoryError\n"
+            "s.run = run\n"
+            "sys.argv = ['has-control', 'simulate']\n"
+            "from has_control.cli.main import main\n"
+            "sys.exit(main())\n")
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=50)
+    assert r.returncode == 2 and r.stderr.strip() == "has-control: error: out of memory", r.stderr
+    assert time.monotonic() - t0 < 30
+
+
+def test_a_closed_standard_output_ends_quietly_with_141():
+    """As ``yes | head`` does: no "(path unknown): Broken pipe", no traceback; status 128 + SIGPIPE."""
+    p = subprocess.Popen(CLI + ["simulate", "--duration", "2", "--json"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.close()                                         # the reader is gone before the answer
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 141 and err == "", err
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "1e308", "-1", "3601"])
+def test_foxglove_wait_is_a_bounded_number(capsys, value):
+    with pytest.raises(SystemExit) as e:
+        main(["stack", "--foxglove", "--foxglove-wait", value])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert "--foxglove-wait" in err and repr(value) in err and "0 .. 3600" in err
+
+
+def test_foxglove_wait_without_foxglove_is_refused(capsys):
+    one_line(capsys, ["stack", "--foxglove-wait", "3"], "--foxglove-wait 3", "only with --foxglove")
+
+
+@pytest.mark.parametrize("argv, culprits", [
+    (["simulate", "--duration", "1e9"], ["--duration", "simulation.horizon", "limit"]),
+    (["tune", "--duration", "1e308"], ["--duration", "simulation.horizon", "limit"]),
+    (["tune", "--particles", "99999999999"], ["swarm.particles", "limit"]),
+    (["tune", "--particles", "9" * 400], ["swarm.particles", "limit"]),
+    (["tune", "--particles", "100000", "--iterations", "1000"], ["swarm.iterations", "evaluations"]),
+    (["tune", "--seed", "-1"], ["swarm.seed = -1"]),
+    (["simulate", "--gains", "2e6", "150", "150"], ["--gains: K1 = '2e6'", "1e+06"]),
+    (["stack", "--gains", "2e6", "150", "150"], ["--gains: K1 = '2e6'", "1e+06"]),
+    (["simulate", "--gains", "inf", "150", "150"], ["--gains: K1 = 'inf'"]),
+])
+def test_numbers_out_of_range_are_one_line(capsys, argv, culprits):
+    one_line(capsys, argv, *culprits)
+
+
+@pytest.mark.parametrize("argv, culprits", [
+    (["replay", "--rate", "1e-300", "x"], ["--rate", "1e-300"]),
+    (["replay", "--rate", "nan", "x"], ["--rate"]),
+    (["replay", "--controller", "--tolerance", "-1", "x"], ["--tolerance"]),
+    (["stack", "--namespace", "a b"], ["--namespace", "'a b'"]),
+    (["stack", "--namespace", "/1x"], ["--namespace"]),
+    (["stack", "--tune", "--lanes", "/ok", "bad//ns"], ["--lanes"]),
+])
+def test_bad_arguments_are_one_argparse_line(capsys, argv, culprits):
+    argparse_error(capsys, argv, *culprits)
+
+
+def test_good_namespaces_pass():
+    from has_control.cli.args import namespace as _namespace
+    for ns in ("", "/", "/sim0", "sim0", "/a/b_2", "_x"):
+        assert _namespace(ns) == ns

@@ -6,14 +6,16 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import free_port, one_line
 
 import has_control
+from has_control.cli import main
 from has_control.tuning.dask_evaluator import (
     LANES, ClusterError, SpecError, dask_batch, modelled_seconds, parse_spec, plan_tasks,
 )
@@ -336,7 +338,7 @@ def test_scaling_model_of_the_bench():
 
 @pytest.mark.cluster
 def test_cli_robust_tuning_on_dask_equals_the_local_one(capsys):
-    """Issue #14's "done when": ``tune --scenarios config/scenarios.yaml --aggregate cvar:0.2
+    """Robust tuning on Dask: ``tune --scenarios config/scenarios.yaml --aggregate cvar:0.2
     --dask local:2 --json`` gives the result it gives without --dask (a short run of it)."""
     from has_control.cli import main
     from has_control.config import CONFIG_DIR
@@ -372,3 +374,53 @@ def test_a_session_started_on_dask_resumes_locally_to_the_same_result(tmp_path):
     resumed = run_session(None, None, resume_dir=tmp_path / "s")
     assert resumed.result.gains == whole.gains and resumed.result.result.fun == whole.result.fun
     assert [h.best_cost for h in resumed.result.result.history] == [h.best_cost for h in whole.result.history]
+
+
+def _server(behaviour):
+    """A listener on 127.0.0.1 that is not a Dask scheduler; its port."""
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen(8)
+    held = []
+
+    def serve():
+        while True:
+            try:
+                c, _ = s.accept()
+            except OSError:
+                return
+            held.append(c)
+            try:
+                if behaviour == "garbage":
+                    c.sendall(bytes(range(256)) * 16 + b"\xff" * 64)
+                elif behaviour == "http":
+                    c.recv(1024)
+                    c.sendall(b"HTTP/1.0 400 Bad Request\r\n\r\n")
+            except OSError:
+                pass
+    threading.Thread(target=serve, daemon=True).start()
+    return s, s.getsockname()[1]
+
+
+@pytest.mark.cluster
+@pytest.mark.parametrize("behaviour", ["silent", "garbage", "http"])
+def test_an_address_that_is_not_a_scheduler_is_one_line(behaviour, capsys):
+    pytest.importorskip("distributed")
+    server, port = _server(behaviour)
+    old = signal.signal(signal.SIGALRM, lambda *a: pytest.fail("hangs"))
+    signal.alarm(60)                                       # a hang guard, not a timing
+    try:
+        one_line(capsys, ["tune", "--variant", "pso-cp-tvac",
+                          "--particles", "2", "--iterations", "1", "--duration", "1.2",
+                          "--dask", f"tcp://127.0.0.1:{port}"], f"tcp://127.0.0.1:{port}", "scheduler")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+        server.close()
+
+
+def test_a_huge_worker_count_is_cut_in_the_error(capsys):
+    with pytest.raises(SystemExit):
+        main(["tune", "--dask", "local:" + "9" * 5000])
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and len(err) < 300 and "1 <= N <= 1024" in err, err

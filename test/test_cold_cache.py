@@ -1,5 +1,5 @@
 """With a cold numba compile cache, the kernels are compiled at configure, never
-on a controller's or plant's first sample (#30): a subprocess with a fresh
+on a controller's or plant's first sample: a subprocess with a fresh
 NUMBA_CACHE_DIR configures the nodes, then answers its first states on both
 interfaces; no dispatcher gains a signature after configure."""
 import json

@@ -1,5 +1,10 @@
-"""Parameter files: the shipped ones are the reference configuration; bad ones fail in one line."""
+"""Parameter files: the shipped ones are the reference configuration; bad ones fail in one line (YAML
+aliases, deep nesting, duplicate keys, values beyond the limits, a FIFO, a device or an oversize file)."""
+import os
+import time
+
 import pytest
+from conftest import one_line
 
 from has_control.config import CONFIG_DIR, config_parameters, load_config
 from has_control.common.errors import ConfigError
@@ -88,7 +93,7 @@ def test_sections_apply_to_the_nodes_they_name_as_rcl_decides(tmp_path):
 
 
 def test_the_shipped_files_comments_derive_from_the_parameter_tables():
-    """One table per component (#28 item 4): each value line's comment in config/*.yaml is its Param's
+    """One table per component: each value line's comment in config/*.yaml is its Param's
     meaning and unit (regenerate with has_control.config.yaml_with_comments after editing a table)."""
     from has_control.config import CONFIG_DIR, CONFIG_TABLE, yaml_with_comments
     from has_control.tuning.parameters import TUNING_TABLE
@@ -108,3 +113,58 @@ def test_a_parameter_table_checks_type_range_and_choices_in_one_line():
     assert refusal(CONFIG_TABLE, "noise.seed", -1) == "noise.seed = -1: expected a whole number in [0, 2^63)"
     assert refusal(CONFIG_TABLE, "adaptation.gain", [1.0]) == \
         "adaptation.gain = [1.0]: expected a list of two numbers"
+
+
+HEAD = "/**:\n  ros__parameters:\n"
+
+
+def _yaml(tmp_path, name, body):
+    p = tmp_path / name
+    p.write_text(HEAD + body) if isinstance(body, str) else p.write_bytes(body)
+    return p
+
+
+def _bomb():
+    lines = ["    swarm:", "      a0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    lines += [f"      a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 9) + "]" for i in range(1, 9)]
+    return "\n".join(lines) + "\n"
+
+
+CONFIGS = {
+    "binary": (b"\xff\xfe\x00\x01binary\x80", ["not UTF-8"]),
+    "self-alias": ("    actuator:\n      mass: &m [*m]\n", ["alias *m"]),
+    "alias-bomb": (_bomb(), ["alias *a0"]),
+    "deep": ("    x: " + "[" * 2000 + "]" * 2000 + "\n", ["nested deeper"]),
+    "int-400-digits": ("    actuator:\n      mass: " + "9" * 400 + "\n", ["actuator.mass", "finite"]),
+    "int-5000-digits": ("    actuator:\n      mass: " + "9" * 5000 + "\n", ["not valid YAML"]),
+    "tiny-step": ("    simulation:\n      step: 1.0e-9\n", ["simulation.step = 1e-09", "limit"]),
+    "dup-key": ("    actuator:\n      mass: 1.0\n      mass: 2.0\n", ["duplicate key 'mass'", "line 5"]),
+    "dup-block": ("    actuator:\n      mass: 1500.0\n    actuator:\n      damping: 1.0\n",
+                  ["duplicate key 'actuator'"]),
+    "negative-bounds": ("    swarm:\n      lower: [-5.0, -5.0, -5.0]\n      upper: [-1.0, -1.0, -1.0]\n",
+                        ["swarm.lower[0] = -5"]),
+    "upper-beyond-gain-range": ("    swarm:\n      upper: [2.0e6, 800.0, 800.0]\n", ["swarm.upper[0]"]),
+    "inertia-inf": ("    swarm:\n      inertia_max: .inf\n", ["swarm.inertia_max = inf", "finite"]),
+    "particles-300-digits": ("    swarm:\n      particles: " + "9" * 300 + "\n", ["swarm.particles", "limit"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CONFIGS))
+def test_hostile_config_files_are_one_line_naming_the_file(capsys, tmp_path, case):
+    body, culprits = CONFIGS[case]
+    p = _yaml(tmp_path, f"{case}.yaml", body)
+    t0 = time.perf_counter()
+    one_line(capsys, ["tune", "--iterations", "1", "--particles", "2", "--config", str(p)], str(p), *culprits)
+    assert time.perf_counter() - t0 < 5
+
+
+def test_fifo_device_directory_and_oversize_file_are_refused_without_reading(capsys, tmp_path):
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    big = tmp_path / "big.yaml"
+    big.write_text(HEAD + "#" * (2 << 20))
+    for path, why in ((fifo, "not a regular file"), ("/dev/zero", "not a regular file"),
+                      (tmp_path, "a directory"), (big, "larger than the limit")):
+        one_line(capsys, ["simulate", "--config", str(path)], str(path), why)
+        one_line(capsys, ["bag-info", str(path)] if path != tmp_path else ["bag-info", str(fifo)],
+                 "not a regular file" if path != big else "MCAP")

@@ -110,7 +110,7 @@ def test_a_gap_is_flagged_over_2x_and_a_measured_j_far_below_the_prediction_is_n
     assert "within" not in gap_words(0.00266) and "no gap over 2x" in gap_words(0.00266)
 
 
-# --- #29 item 1: the deployment keeps the better of what it measured -----------------------------------------
+# --- the deployment keeps the better of what it measured ------------------------------------------------
 #: Gains that are stable on the 100 Hz spool but lower than the safe ones: 2.2x the safe gains' J over 10 s.
 STABLE_WORSE = (120.0, 120.0, 120.0)
 

@@ -89,7 +89,7 @@ def test_each_layouts_command_and_internals_pair_into_the_samples_the_controller
 @pytest.mark.ros
 def test_on_the_plant_node_a_limit_cycling_deployment_falls_back_within_100_ms_of_the_onset(
         machine, context, tmp_path):
-    """#29: the project's plant node with a 100 Hz second-order valve, the
+    """The deploy node on the graph: the project's plant node with a 100 Hz second-order valve, the
     controller node moved through its gains.* parameters by the deploy node
     watching the topics: the fallback gains take effect before the limit cycle's
     onset (+100 ms at most), and the run's J stays within 2x the safe gains'."""

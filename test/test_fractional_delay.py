@@ -1,4 +1,4 @@
-"""A fractional transport delay of the command (#29 item 3): ``plant.delay_fraction``
+"""A fractional transport delay of the command: ``plant.delay_fraction``
 f interpolates the command linearly between samples i − d and i − d − 1, so a
 delay of d + f samples is not rounded to whole ones (the vouching variant's
 delay is the group delay it stands for). The library's kernels and the plant

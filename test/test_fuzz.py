@@ -1,4 +1,4 @@
-"""Issue #11: a fuzz test of the config loader and the bag reader. Random and
+"""A fuzz test of the config loader and the bag reader. Random and
 mutated inputs (seeded, bounded in count and time): every input gives a
 result or a one-line HasControlError, never another exception, never a hang."""
 import dataclasses
@@ -137,7 +137,7 @@ def test_fuzz_the_bag_reader(small_bags, tmp_path, capsys):
     _fuzz(small_bags, check, tmp_path, "bag.mcap", seed=2027, cases=BAG_CASES)
 
 
-# --- issue #19: metadata.yaml's custom_data and session records -----------------------------------
+# --- metadata.yaml's custom_data and session records --------------------------------------------
 
 METADATA_CASES = 400        # edits of metadata.yaml custom_data (each a bag read: SECONDS ends it near 100)
 SESSION_CASES = 400         # edits of a session's records, each checked as a resume checks it (about 3 s)
@@ -223,7 +223,7 @@ def test_fuzz_session_records(session_records, tmp_path):
     _fuzz(seeds, check, tmp_path, "record.json", seed=2029, cases=SESSION_CASES, tokens=JSON_TOKENS)
 
 
-# --- issue #31: the reader of recorded samples, message by message --------------------------------
+# --- the reader of recorded samples, message by message -------------------------------------------
 
 MESSAGE_CASES = 600         # edits of one run's state and command messages (in memory; SECONDS ends it)
 

@@ -183,7 +183,7 @@ def test_a_limit_cycle_is_a_line_not_a_broadband_excitation():
 
 
 def test_a_spool_seen_through_a_limit_cycle_is_not_determined_nor_identified(in_class):
-    # issue #27: from the old experiment alone, three spools of 81-100 Hz oscillated (band 52-92 Hz) and
+    # from the old experiment alone, three spools of 81-100 Hz oscillated (band 52-92 Hz) and
     # were called adequate with their valve "determined"; on one, omega_n's tight interval missed the truth
     _, res = in_class
     v = dataclasses.replace(res.verdict, band_hz=92.3, valve_corner_hz=100.4, broadband_hz=4.4, line_hz=88.3,

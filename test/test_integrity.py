@@ -1,4 +1,4 @@
-"""Issue #11, class C: recorded data with integrity. Bits flipped over every
+"""Recorded data with integrity (the bag and session readers' checks). Bits flipped over every
 region of a small recorded bag and of a small session bag give one line and
 exit 2, or a warning and the identical result; never a different result."""
 import contextlib

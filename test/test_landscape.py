@@ -1,10 +1,13 @@
 """has-control landscape: J over 2-D slices through a point, minima and bound found from the grid."""
 import json
+import time
 
 import numpy as np
+import pytest
+from conftest import one_line
 
 from has_control.cli.main import main
-from has_control.tuning.landscape import slices
+from has_control.tuning.landscape import MAX_EPISODES, check_plan, planned_episodes, slices
 
 LOWER, UPPER = [150.0, 150.0, 150.0], [1200.0, 800.0, 800.0]
 
@@ -44,3 +47,19 @@ def test_the_cli_draws_and_prints_the_slices(tmp_path, capsys):
     assert png.read_bytes()[:4] == b"\x89PNG"
     assert main(["landscape", "--point", "400", "400", "-1"]) == 2
     assert "--point: K3 = '-1'" in capsys.readouterr().err
+
+
+def test_the_landscape_bounds_slices_times_points_squared_times_scenarios_before_allocation(tmp_path, capsys):
+    many = tmp_path / "many.yaml"
+    many.write_text("random: {count: 1000, seed: 1, ranges: {plant.mass: [1200.0, 1800.0]}}\n")
+    t0 = time.perf_counter()
+    one_line(capsys, ["landscape", "--points", "300", "--scenarios", str(many)], "--points 300",
+             "1,000 scenarios", "270,000,000 episodes", f"limit of {MAX_EPISODES:,}")
+    assert time.perf_counter() - t0 < 30
+    assert planned_episodes(300) == MAX_EPISODES and check_plan(300) == MAX_EPISODES      # nominal: as before
+    assert check_plan(9, 1000) == 243_000
+
+    def never(k):
+        raise AssertionError("the objective was called")
+    with pytest.raises(Exception, match="episodes, above the limit"):
+        slices(never, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), (2.0, 2.0, 2.0), points=20, scenarios=1000)

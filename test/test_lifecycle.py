@@ -258,7 +258,7 @@ def test_plant_lifecycle_runs_only_while_active(context):
 
 
 def test_plant_start_after_an_episode_runs_an_episode_and_a_reset_plant_meets_fresh_estimates(context):
-    """#30: ~/start after a finished episode ran one sample while answering "episode
+    """~/start after a finished episode once ran one sample while answering "episode
     started"; after ~/reset the controller's estimates carried over into the new run."""
     n = 300
     ex = EventsExecutor(context=context)
@@ -293,7 +293,7 @@ def test_plant_start_after_an_episode_runs_an_episode_and_a_reset_plant_meets_fr
 
 def test_two_publishers_on_joint_states_are_conflicts_not_consecutive_samples(context):
     """Two ros2_control systems on /joint_states with the same clock: each sample is answered
-    once, the other system's state is counted as a conflict (and stale), never answered (#30)."""
+    once, the other system's state is counted as a conflict (and stale), never answered."""
     ex = EventsExecutor(context=context)
     controller = ControllerNode(context=context, parameter_overrides=ROS2_CONTROL)
     a, b = (rclpy.create_node(name, context=context) for name in ("system_a", "system_b"))

@@ -250,7 +250,7 @@ def test_the_ros2_control_port_keeps_time_from_the_stamps_across_drops_and_jitte
     first_drop = answered.index(50)
     want = [FORWARD_COMMAND_LAYOUT.encode([ref.data[i, Col.u]]) for i in answered]
     assert got[:first_drop] == want[:first_drop]                  # bit for bit up to the first drop
-    assert got == want                  # and after each: the missing samples predicted by the model (#30 item 1)
+    assert got == want                  # and after each: the missing samples predicted by the model
     u = np.array([np.frombuffer(c[-8:], dtype="<f8")[0] for c in got])      # [u]: the message's last 8 bytes
     # after it the estimates were held over each missing sample (their rate there is unknown):
     # the same command to 1e-8 of the largest (measured 3.3e-9), where a sample off flipped its sign
@@ -336,7 +336,7 @@ def test_a_joint_named_twice_is_refused_and_counted():
 
 
 def test_a_plant_reset_restarts_the_controllers_run_on_either_port():
-    """The stamps start again at 0 (plant/reset): the estimates go back to â(0) (#30)."""
+    """The stamps start again at 0 (plant/reset): the estimates go back to â(0)."""
     cfg = Config()
     ref = simulate(with_horizon(cfg, 1.5))
     states = list(_encoded_states(cfg, ref.data[:200]))
@@ -429,7 +429,7 @@ def test_dropped_states_are_predicted_so_the_answers_are_those_of_a_controller_t
 
 
 def test_start_after_an_episode_runs_a_whole_episode_from_where_it_stopped():
-    """plant/start after a finished episode runs ``samples`` more samples, not one (#30)."""
+    """plant/start after a finished episode runs ``samples`` more samples, not one."""
     cfg, n = with_horizon(Config(), 1.5), 100
     link, plant, controller, log, _ = _wire(cfg, LockStep(timeout=60.0, startup_timeout=60.0), n)
     plant.start()

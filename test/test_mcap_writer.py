@@ -1,4 +1,5 @@
-"""The hand-written MCAP writer behind BagWriter: batches read back by three readers, CRCs, sync, metadata."""
+"""The hand-written MCAP writer behind BagWriter: batches read back by three readers, CRCs, sync, metadata;
+a full disk under it names the bag."""
 import json
 import struct
 import sys
@@ -8,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import main_result, one_error_line
 
 from has_control.wire import cdr
 from has_control.bag import (CLOCK, FLOAT64_ARRAY, JOINT_STATE, BagError, BagWriter, QosSpec, read_bag,
@@ -302,3 +304,19 @@ def test_misuse_is_one_line_naming_the_bag(tmp_path):
         BagWriter(tmp_path / "b")
     with pytest.raises(BagError, match="not a string"):
         BagWriter(tmp_path / "c", {"k": 1})
+
+
+def test_a_full_disk_under_the_bag_writer_names_the_bag(tmp_path, capsys, monkeypatch):
+    import has_control.cli.bag_info as bag_info
+    from has_control.bag import BagWriter, STRING
+
+    def record_to_a_full_disk(args):
+        w = BagWriter(tmp_path / "bag")
+        w._mcap._file.close()
+        w._mcap._file = open("/dev/full", "wb", buffering=0)
+        w.add_topic("/x", STRING)
+        w.write("/x", 1, b"\0" * 64)
+        w.sync()
+    monkeypatch.setattr(bag_info, "run", record_to_a_full_disk)
+    rc, _, err = main_result(capsys, "bag-info", "x")
+    one_error_line(rc, err, str(tmp_path / "bag" / "bag.mcap"), "No space left on device")

@@ -26,7 +26,7 @@ def test_node_help_prints_usage_and_every_parameter_without_starting_a_node(node
     assert "ready" not in r.stdout
     if node != "tuner":                                       # the true default, not the help's own override
         assert any(line.startswith("  autostart = True: ") for line in params)
-    else:                                                     # real descriptions and the true choices (#30 item 6)
+    else:                                                     # real descriptions and the true choices
         variant = next(line for line in params if line.startswith("  swarm.variant = "))
         assert "cma-restarts" in variant and "one of: cma-restarts, pso, pso-cp, pso-cp-tvac" in variant
         assert not any(line.split(" = ")[0].strip() == line.rsplit(": ", 1)[-1].strip() for line in params)
@@ -98,3 +98,18 @@ def test_replay_controller_tests_the_running_node_it_names(context, domain_id, t
     r = subprocess.run(CLI + ["replay", str(bag), "--controller", "/nobody/controller"], env=env,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "/nobody/controller" in r.stderr
+
+
+@pytest.mark.parametrize("node, args, culprit", [
+    ("controller", ["-p", "gains.k1:=-1.0"], "gains.k1"),
+    ("plant", ["-p", "samples:=-5"], "samples = -5"),
+    ("plant", ["-p", "command_timeout:=-1.0"], "command_timeout = -1.0"),
+    ("plant", ["-p", "mode:=fast"], "mode = 'fast'"),
+])
+def test_bad_start_up_parameters_end_in_one_line(node, args, culprit, domain_id):
+    import os
+    r = subprocess.run([sys.executable, "-m", "has_control.cli", node, "--ros-args", *args],
+                       env={**os.environ, "ROS_DOMAIN_ID": str(domain_id)},
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and culprit in r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1

@@ -6,6 +6,7 @@ import sys
 import pytest
 import rclpy
 
+from has_control.cli import main
 from has_control.nodes.controller_node import ControllerNode
 
 
@@ -49,7 +50,7 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
     controller, plant = ControllerNode(context=context), PlantNode(context=context)
     try:
         k1, kind, step = controller.describe_parameters(["gains.k1", "reference.kind", "simulation.step"])
-        # (0, 1e6]: an open bound has no FloatingPointRange (it would need a subnormal Min, #30 item 6)
+        # (0, 1e6]: an open bound has no FloatingPointRange (it would need a subnormal Min)
         assert "[1/s]" in k1.description and k1.additional_constraints == "> 0 and <= 1e+06"
         assert not k1.floating_point_range and not k1.read_only
         assert "sine" in kind.additional_constraints and "chirp" in kind.additional_constraints
@@ -73,7 +74,7 @@ def test_parameter_descriptors_say_unit_range_choices_and_read_only(context):
 
 @pytest.mark.ros
 def test_a_whole_number_for_a_double_is_taken_at_start_up_and_live_settings_apply(context):
-    """#30 item 6: -p gains.k1:=300 (an integer) starts the controller with 300.0; a setting the
+    """-p gains.k1:=300 (an integer) starts the controller with 300.0; a setting the
     node accepts at runtime takes effect (publish_internals, failsafe_samples), none is ignored."""
     from rclpy.parameter import Parameter
     from has_control.nodes.plant_node import PlantNode
@@ -95,7 +96,7 @@ def test_a_whole_number_for_a_double_is_taken_at_start_up_and_live_settings_appl
 
 @pytest.mark.ros
 def test_every_node_parameter_comes_from_a_table(context):
-    """#28 item 4: a node declares nothing that its component's table does not hold (rclpy's
+    """One table per component: a node declares nothing that its component's table does not hold (rclpy's
     use_sim_time and start_type_description_service, the live view's foxglove_port aside), and
     each descriptor is the table's."""
     from has_control.config import CONFIG_TABLE
@@ -115,3 +116,33 @@ def test_every_node_parameter_comes_from_a_table(context):
                 assert desc.additional_constraints == descriptor(tables[name]).additional_constraints, name
         finally:
             node.destroy_node()
+
+
+@pytest.mark.parametrize("node", ["plant", "controller", "tuner"])
+def test_a_bad_params_file_at_node_start_up_is_one_line_naming_it(node, tmp_path, capsys):
+    files = {"nope.yaml": None, "bad.yaml": "a: [\n", "nops.yaml": "/**:\n  gains: {k1: 1.0}\n",
+             "extra.yaml": "/**:\n  ros__parameters:\n    gains: {k1: 400.0}\nextra: 1\n",
+             "mixed.yaml": "/**:\n  ros__parameters:\n    gains: {k1: [1, \"x\"]}\n",
+             "twice.yaml": "/**:\n  ros__parameters:\n    gains.k1: 400.0\n    gains: {k1: 500.0}\n"}
+    (tmp_path / "adir").mkdir()
+    for name, text in files.items():
+        if text is not None:
+            (tmp_path / name).write_text(text)
+    for name in [*files, "adir"]:
+        with pytest.raises(SystemExit) as info:
+            main([node, "--ros-args", "--params-file", str(tmp_path / name)])
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and len(err.strip().splitlines()) == 1, err
+        assert str(tmp_path / name) in err and "Traceback" not in err, err
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("node", ["plant", "controller"])
+def test_arguments_rcl_refuses_at_node_start_up_are_one_line(node, capfd):
+    """rcl logs its own [ERROR] line on fd 2 before it raises: held back, so ours is the one line."""
+    for ros_args in (["-p"], ["-p", "gains.k1:=["]):
+        with pytest.raises(SystemExit) as info:
+            main([node, "--ros-args", *ros_args])
+        lines = capfd.readouterr().err.strip().splitlines()
+        assert info.value.code == 2 and len(lines) == 1, lines
+        assert lines[0].startswith(f"has-control {node}: error: ROS refused the arguments: "), lines

@@ -1,4 +1,4 @@
-"""Model options of a real servo-hydraulic plant (issue #27 item 2): a
+"""Model options of a real servo-hydraulic plant: a
 second-order spool with its stop, a transport delay of the command, Coulomb
 and Stribeck friction, RK4 substeps, quantised sensors and a derived
 velocity. Each is checked against its physics or definition; every option

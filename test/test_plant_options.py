@@ -1,5 +1,5 @@
 """The plant beside the controller's model: mismatch, valve limit and lag,
-measurement noise and the road reference (issue #14, item 1).
+measurement noise and the road reference.
 
 Each option is checked against its physics or its definition, the reference
 configuration against itself (an option at its default changes no bit), and

@@ -13,6 +13,7 @@ from conftest import cli, run_main
 
 from has_control.bag import BagWriter, read_bag, recorded_run, score_bag, write_trace
 from has_control.bag.series import run_series
+from has_control.cli import main
 from has_control.config import build_config, load_scenarios, with_horizon
 from has_control.core.episode import simulate
 from has_control.core.params import Config
@@ -358,7 +359,7 @@ def test_convergence_legend_says_how_many_seeds_it_averages():
 
 
 def test_a_label_with_dollar_signs_is_drawn_as_written(tmp_path):
-    # issue #31: a bag named 'a$b_{$x' (or any label with '$') was parsed as mathtext and raised
+    # a bag named 'a$b_{$x' (or any label with '$') was once parsed as mathtext and raised
     from has_control.plots.identification import plot_validation
     t = np.arange(50) * 3e-4
     states = np.column_stack([np.sin(t), np.cos(t), 5e6 + t, 4e6 + t])
@@ -371,3 +372,15 @@ def test_a_label_with_dollar_signs_is_drawn_as_written(tmp_path):
     import matplotlib.pyplot as plt
     fig.canvas.draw()                           # the text is laid out: no mathtext parse
     plt.close(fig)
+
+
+@pytest.mark.parametrize("command", [["robustness", "--gains", "400", "400", "400"], ["simulate"]])
+def test_a_figure_format_matplotlib_cannot_write_is_one_line_before_any_run(tmp_path, capsys, command):
+    p = tmp_path / "s.yaml"
+    p.write_text("scenarios:\n  nominal: {}\n")
+    extra = ["--scenarios", str(p)] if command[0] == "robustness" else []
+    with pytest.raises(SystemExit) as status:                   # argparse: before anything runs
+        main([*command, *extra, "--duration", "1.2", "--plot", str(tmp_path / "r.txt")])
+    assert status.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "r.txt" in err and "png" in err, err

@@ -137,7 +137,7 @@ def test_tuning_on_dask_gives_the_local_bits():
 @pytest.mark.system
 def test_the_nominal_optimum_is_the_bounds_and_the_cli_says_so(tmp_path):
     """Around the best gains in the box, k1 ends on its upper bound 1200, and J
-    still falls beyond it: the warning of issue #21, in the text and the JSON."""
+    still falls beyond it: the bound warning, in the text and the JSON."""
     box = tmp_path / "box.yaml"
     box.write_text("/**:\n  ros__parameters:\n    swarm:\n      lower: [800.0, 150.0, 150.0]\n"
                    "      upper: [1200.0, 400.0, 400.0]\n")
@@ -157,7 +157,7 @@ def test_the_nominal_optimum_is_the_bounds_and_the_cli_says_so(tmp_path):
 
 @pytest.mark.system
 def test_over_the_shipped_scenarios_the_optimum_is_inside_and_nothing_is_said():
-    """The robust objective of issue #21 (CVaR 0.2 over config/scenarios.yaml: drifting
+    """The robust objective (CVaR 0.2 over config/scenarios.yaml: drifting
     plants with valve lag and sensor noise; 2 s episodes) has its optimum inside the
     box (k ~ 370 each): no gain ends on a bound, no probe is spent, no warning."""
     cfg = with_horizon(Config(), 2.0)

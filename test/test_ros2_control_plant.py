@@ -1,6 +1,6 @@
 """The plant in its ros2_control layout against the controller in ros2_control mode,
 in two processes, and an external recorder of the documented recording QoS in a
-third (#30 items 2 and 4)."""
+third."""
 import os
 import subprocess
 import sys

@@ -1,4 +1,4 @@
-"""Scenario sets, the robust aggregate and robust tuning (issue #14, item 2)."""
+"""Scenario sets and scenario files, the robust aggregate and robust tuning, robustness labels."""
 from __future__ import annotations
 
 import json
@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import NOM, one_line
 
 from has_control.cli import main
 from has_control.config import CONFIG_DIR, load_config
@@ -15,7 +16,7 @@ from has_control.common.errors import ConfigError
 from has_control.core.scenarios import Aggregate, evaluate_scenarios, parse_aggregate
 from has_control.config import Scenario, load_scenarios
 from has_control.tuning.session import run_session
-from has_control.tuning.tuner import Tuning, tune
+from has_control.tuning.tuner import Tuning, tune, tuning_from_json, tuning_json
 
 SHIPPED = CONFIG_DIR / "scenarios.yaml"
 SMALL = """
@@ -169,3 +170,51 @@ def test_cli_tune_scenario_errors_are_one_line(capsys, extra, culprit):
     assert main(["tune", "--variant", "pso-cp-tvac", "--particles", "2", "--iterations", "1", *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and culprit in err, err
+
+
+@pytest.mark.parametrize("text, culprit", [
+    ("random: {count: 3, ranges: {plant.mass: [-1.0e308, 1.0e308]}}\n", "random.ranges.plant.mass"),
+    ("scenarios:\n  a: {plant.mass: 1500.0, plant: {mass: 1600.0}}\n", "scenario a: plant.mass: given twice"),
+    ("random: {count: 2, ranges: {plant.mass: [1.0, 2.0], plant: {mass: [3.0, 4.0]}}}\n", "plant.mass: given twice"),
+])
+def test_scenario_files_that_overflow_or_say_a_key_twice_are_one_line(tmp_path, capsys, text, culprit):
+    p = tmp_path / "s.yaml"
+    p.write_text(text)
+    one_line(capsys, ["robustness", "--gains", 400, 400, 400, "--duration", 1.2, "--scenarios", p], p, culprit)
+    one_line(capsys, ["tune", "--duration", 1.2, "--scenarios", p], p, culprit)
+
+
+@pytest.mark.ros
+def test_every_front_end_checks_scenarios_and_aggregate_alike(tmp_path, capsys, context):
+    from rclpy.parameter import Parameter
+
+    from has_control.nodes.tuner_node import TunerNode
+    p = tmp_path / "s.yaml"
+    p.write_text(NOM)
+    one_line(capsys, ["tune", "--scenarios", p, "--aggregate", ""], "--aggregate", "expected mean, max or cvar")
+    one_line(capsys, ["robustness", "--gains", 400, 400, 400, "--scenarios", p, "--aggregate", ""], "aggregate ''")
+    one_line(capsys, ["tune", "--aggregate", "max"], "--aggregate max: needs --scenarios")
+    for params, why in (([Parameter("aggregate", value="garbage")], "parameter aggregate"),
+                        ([Parameter("aggregate", value="max")], "needs parameter scenarios"),
+                        ([Parameter("scenarios", value=str(p)), Parameter("aggregate", value="")],
+                         "parameter aggregate")):
+        with pytest.raises(ConfigError, match=why):
+            TunerNode(context=context, parameter_overrides=params)
+
+
+def test_robustness_refuses_one_label_for_two_gain_sets(tmp_path, capsys):
+    p = tmp_path / "s.yaml"
+    p.write_text("scenarios:\n  nominal: {}\n")
+    args = ["robustness", "--scenarios", str(p), "--duration", "1.2", "--gains", "400", "400", "400",
+            "--label", "a", "--gains", "150", "158", "162", "--label", "a"]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "'a'" in err, err
+
+
+def test_a_stored_aggregate_is_the_aggregate_bit_for_bit():
+    for agg in (Aggregate("cvar", 0.2000001), Aggregate("cvar", 0.1 + 0.2), Aggregate("cvar", 1 / 3)):
+        assert parse_aggregate(str(agg)) == agg
+        t = Tuning().replace(scenarios=(Scenario("a"),), aggregate=agg)
+        assert tuning_from_json(tuning_json(t)).aggregate == agg
+    assert str(Aggregate("cvar", 0.2)) == "cvar:0.2" and str(Aggregate("cvar", 1.0)) == "cvar:1"

@@ -133,7 +133,7 @@ def test_bad_tuner_scenarios_are_one_line(domain_id, params, culprit):
 
 
 def test_the_validation_block_agrees_only_within_the_tolerance():
-    """#30 item 3 without ROS: graph = library agrees; a 70x gap (the issue's 2.03e-3 against
+    """The validation block without ROS: graph = library agrees; a 70x gap (a reported 2.03e-3 against
     2.91e-5) disagrees and names the lane parameter that differs; inf against inf agrees."""
     from has_control.tuning.validation import (disagreement_status, lane_differences, validation_block,
                                                validation_line)
@@ -151,3 +151,33 @@ def test_the_validation_block_agrees_only_within_the_tolerance():
     assert not validation_block({"J": 1.0}, 1.0 + 1e-5, 1.0, [])["agrees"]
     assert validation_block({"J": "inf"}, float("inf"), float("inf"), [])["agrees"]
     assert not validation_block({"J": "inf"}, float("inf"), 1e-4, [])["agrees"]
+
+
+@pytest.mark.ros
+def test_the_tuner_node_takes_the_plant_options_and_the_noise(context):
+    from has_control.config import build_config
+    from has_control.nodes.stack import _overrides
+    from has_control.nodes.tuner_node import TunerNode
+    cfg = build_config({"plant.mass": 1700.0, "plant.valve_limit": 4e-3, "plant.valve_time_constant": 1e-3,
+                        "noise.position": 1e-6, "noise.seed": 7})
+    node = TunerNode(context=context, parameter_overrides=_overrides(cfg))
+    try:
+        assert node.cfg.noise == cfg.noise
+        assert node.cfg.plant.actuator(node.cfg.actuator) == cfg.plant.actuator(cfg.actuator)
+        assert (node.cfg.plant.valve_limit, node.cfg.plant.valve_time_constant) == (4e-3, 1e-3)
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.ros
+def test_stack_tuning_with_plant_options_scores_what_the_graph_runs(domain_id):
+    from has_control.config import build_config
+    from has_control.config import with_horizon
+    from has_control.nodes.stack import run_tuning_stack
+    from has_control.tuning.tuner import load_tuning, tune
+    cfg = with_horizon(build_config({"plant.mass": 1700.0, "plant.valve_limit": 4e-3, "noise.position": 1e-6,
+                                     "plant.valve_time_constant": 1e-3, "noise.seed": 7}), 1.2)
+    out = run_tuning_stack(cfg, {"variant": "pso-cp-tvac", "iterations": 2, "particles": 3}, evaluator="batch",
+                           domain_id=domain_id)
+    ref = tune(cfg, load_tuning().replace(variant="pso-cp-tvac", iterations=2, particles=3))
+    assert out["gains"] == list(ref.gains) and out["J"] == ref.result.fun == out["validation"]["J"]

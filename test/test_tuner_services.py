@@ -93,7 +93,7 @@ def _service(ex, client, name):
     ("lanes", ["/sim9"], "read-only"),
 ])
 def test_a_bad_setting_is_refused_when_set_and_the_old_value_kept(context, name, value, why):
-    """#31 item 3: refused at set time by the CLI's checks, with the reason; the old value stays."""
+    """Refused at set time by the CLI's checks, with the reason; the old value stays."""
     _, tuner = _tuner(context)
     try:
         before = tuner.get_parameter(name).value
@@ -107,7 +107,7 @@ def test_a_bad_setting_is_refused_when_set_and_the_old_value_kept(context, name,
 
 
 def test_a_valid_change_between_sessions_takes_effect_at_the_next_start(context):
-    """#30 item 3: the settings are read at ~/start, not frozen at construction."""
+    """The settings are read at ~/start, not frozen at construction."""
     cfg, tuner = _tuner(context, variant="pso-cp-tvac", iterations=2, particles=3)
     ex = EventsExecutor(context=context)
     ex.add_node(tuner)
@@ -126,7 +126,7 @@ def test_a_valid_change_between_sessions_takes_effect_at_the_next_start(context)
 
 
 def test_record_without_lanes_writes_the_result_and_a_second_start_needs_force(context, tmp_path):
-    """#31 item 1: no 10 s wait for optional lanes; #30 item 3: a known conflict refused at once."""
+    """No 10 s wait for optional lanes; a known conflict refused at once."""
     _, tuner = _tuner(context, variant="pso-cp-tvac", iterations=2, particles=3)
     client = rclpy.create_node("operator", context=context)
     ex = EventsExecutor(context=context)
@@ -157,7 +157,7 @@ def test_record_without_lanes_writes_the_result_and_a_second_start_needs_force(c
 
 
 def test_graph_validation_against_the_library_flags_a_lane_that_differs(context, tmp_path):
-    """#30 item 3: the lane's controller models mass 1700 kg, the tuner 1500 kg: a 'validating'
+    """The lane's controller models mass 1700 kg, the tuner 1500 kg: a 'validating'
     status, the lanes' parameters read back into the session bag, a validation block in tune.json
     and ~/status that disagrees, and a status that is not 'finished'."""
     import json
@@ -209,7 +209,7 @@ def test_graph_validation_against_the_library_flags_a_lane_that_differs(context,
 
 
 def test_plant_start_on_an_inactive_plant_answers_failure(context):
-    """#31 item 3: the service says what happened."""
+    """The service says what happened."""
     from has_control.nodes.plant_node import PlantNode
     plant = PlantNode(context=context, parameter_overrides=[Parameter("autostart", value=False)])
     client = rclpy.create_node("operator", context=context)
@@ -230,7 +230,7 @@ HOSTILE = [float("nan"), float("inf"), -1.0, 0.0, 1e300, -1, 0, 10**12, True, "g
 
 
 def test_the_tuner_table_never_refuses_what_tune_takes():
-    """One table per component (#28 item 4): every swarm.*/restarts.* key is in it, and a value the
+    """One table per component: every swarm.*/restarts.* key is in it, and a value the
     table refuses is one the command line's check (tuning_from_parameters) refuses too."""
     from has_control.common.errors import ConfigError
     from has_control.config import refusal
@@ -246,7 +246,7 @@ def test_the_tuner_table_never_refuses_what_tune_takes():
 
 
 def test_hostile_runtime_parameters_leave_a_tuner_that_starts(context):
-    """#31 (fuzz the tuner node's runtime parameters): any value of any parameter is either
+    """A fuzz of the tuner node's runtime parameters: any value of any parameter is either
     refused with a reason or accepted, and the accepted state always passes the ~/start checks."""
     import random
     from has_control.nodes.tuner_node import OWN_PARAMETERS

@@ -59,7 +59,7 @@ def test_tune_cli_json_is_reproducible_and_has_the_documented_keys():
     outs = [json.loads(subprocess.run(args, capture_output=True, text=True, check=True).stdout)
             for _ in range(2)]
     assert set(outs[0]) == {"variant", "seed", "gains", "J", "iterations", "evaluations",
-                            "seconds", "history", "bounds", "success", "message"}      # success, message: #30
+                            "seconds", "history", "bounds", "success", "message"}  # success, message: as OptimizeResult
     for o in outs:
         o.pop("seconds")                     # wall time: the one key that may differ
     assert outs[0] == outs[1]

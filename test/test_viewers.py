@@ -1,4 +1,4 @@
-"""Viewers that show the run (#30 item 5) and a live view whose viewer failing costs nothing (#31).
+"""Viewers that show the run, and a live view whose viewer failing costs nothing.
 
 The shipped Foxglove layout reads only channels the live view serves (the run
 topics, each Float64MultiArray topic by name on ``TOPIC/named``, ``/diagnostics``),

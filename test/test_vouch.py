@@ -57,7 +57,7 @@ def test_a_band_too_low_to_stand_for_vouches_for_nothing():
 
 
 def test_under_an_inadequate_model_nothing_is_vouched_for_and_the_deployment_decides():
-    """#29 item 2: identify's INADEQUATE verdict (plant.model_adequacy) makes every answer NOT VOUCHED and says
+    """Identify's INADEQUATE verdict (plant.model_adequacy) makes every answer NOT VOUCHED and says
     the guarded deployment decides; the objective is the same (the variants still steer the search)."""
     from has_control.tuning.tuner import make_objective
     adequate = build_config({**IDENTIFIED, "plant.model_adequacy": "adequate"}, source="test")
