@@ -121,6 +121,16 @@ def _compared(machine, tuned, **kw):
     return plan, deploy_in_process(machine, plan)
 
 
+def test_the_schedule_starts_and_ends_on_the_gains_given_bit_for_bit(machine):
+    """exp(log(150)) is 149.99999999999997: a fallback to the safe gains is to
+    the user's own numbers, and a kept answer is the tuner's, exactly."""
+    tuned = (186.40976795226135, 192.1978673507054, 191.36840934774176)
+    rows = DeploymentPlan(SAFE, tuned, steps=4).schedule()
+    assert tuple(rows[0]) == tuple(SAFE) and tuple(rows[-1]) == tuned
+    plan, res = _compared(machine, STABLE_WORSE)
+    assert res.comparison.kept == 0 and tuple(res.final_gains) == tuple(SAFE)
+
+
 def test_a_deployment_of_stable_gains_worse_than_the_safe_ones_ends_on_the_safe_gains(machine):
     from has_control.core.episode import simulate
     assert simulate(machine, STABLE_WORSE).score.J > 1.5 * simulate(machine, SAFE).score.J   # the premise

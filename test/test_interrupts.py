@@ -203,7 +203,7 @@ def test_a_signal_during_a_recorded_stack_leaves_a_clean_bag(tmp_path, signame, 
     time.sleep(1.5)                                       # mid-run
     p.send_signal(getattr(signal, signame))
     err = p.communicate(timeout=60)[1]
-    assert p.returncode == 130 and err.strip() == "has-control: interrupted"
+    assert p.returncode == 130 and err.strip() == "has-control: interrupted", (p.returncode, err[-3000:])
     b = read_bag(bag)
     assert b.complete and (bag / "metadata.yaml").exists()
     n = b.count("/state")

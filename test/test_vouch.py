@@ -76,3 +76,35 @@ def test_under_an_inadequate_model_nothing_is_vouched_for_and_the_deployment_dec
     # without a band, an inadequate model is still said to be so
     plain = build_config({"plant.model_adequacy": "inadequate"}, source="test")
     assert answer_run(plain, load_tuning(), gains)["vouch"]["model_inadequate"]
+
+
+def test_with_requirements_the_vouch_compares_the_tracking_j_without_their_penalties():
+    """The vouch asks whether the loop relies on the unseen, a ratio of J; the
+    requirements are the machine's, charged on the identified plant only. (A
+    variant's broken requirement charged as well made the vouch stricter than
+    its ratio: on the study's spool-150-friction machine the answer's worst
+    variant gave 1.01x, far from the 2x limit, at 1.13x the paper's-J answer's J.)"""
+    from has_control.core.episode import evaluate_measured
+    from has_control.tuning.requirements import Requirements
+    from has_control.tuning.tuner import make_objective
+
+    cfg = build_config(IDENTIFIED, source="test")
+    req = Requirements(window=False, at_stop=0.01, hf_rms=2e-4)
+    k = np.array([FRAGILE, (220.0, 220.0, 220.0), (150.0, 158.0, 162.0)])
+    runs = evaluate_measured(k, [cfg] + [v.cfg for v in unseen_variants(cfg)], corner=req.hf_frequency)
+    penalised = req.cost(runs[:, 1:]) > req.tracking(runs[:, 1:])
+    assert penalised.any()                                       # a variant breaks a requirement: the case at stake
+    got = make_objective(cfg, load_tuning().replace(requirements=req))(k)
+    np.testing.assert_array_equal(got, vouched_cost(req.cost(runs[:, 0]), req.tracking(runs[:, 1:])))
+    # the answer's report is on the same J
+    v = answer_run(cfg, load_tuning().replace(requirements=req), FRAGILE)["vouch"]
+    np.testing.assert_allclose([r["ratio"] for r in v["variants"]], runs[0, 1:, 0] / runs[0, 0, 0], rtol=1e-12)
+
+
+def test_an_answer_on_the_kink_is_vouched_for_and_one_past_it_is_not():
+    """The optimum of max(J, J_v / 2) sits where J_v = 2 J; the optimiser's last
+    digits fall on either side (the study's spool-100 answer: 2.0000035x)."""
+    from has_control.tuning.vouch import ON_THE_KINK, vouch_report
+    on = vouch_report(["delay"], ["d"], 1.0, np.array([RATIO * (1.0 + 0.5 * ON_THE_KINK)]))
+    past = vouch_report(["delay"], ["d"], 1.0, np.array([RATIO * (1.0 + 2.0 * ON_THE_KINK)]))
+    assert on["vouched"] and not past["vouched"]

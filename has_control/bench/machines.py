@@ -24,16 +24,23 @@ with the comparison over one period of the reference): ``deployed`` is the
 gains it kept (the requirements' answer, or the manual gains when the
 answer measured no better than they did), and the documented column's J.
 
-``python -m has_control.bench.machines [--machines NAME ...] [--evaluations N] [--robust] [--json FILE]``
-(``scripts/bench --machines``). A study, not a test: it prints what it measured.
+``--drawn N`` studies machines drawn (seeded) from the acceptance class, none
+of them looked at while the path was designed: the held-out check.
+``--reuse JSON`` takes each machine's ``best`` and ``path`` gains from an
+earlier study (their code unchanged, the same bits) and reruns the rest.
+
+``python -m has_control.bench.machines [--machines NAME ...] [--drawn N] [--evaluations N] [--robust]
+[--requirements FILE] [--reuse JSON] [--json FILE]``. A study, not a test: it prints what it measured.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import json
+import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -112,6 +119,32 @@ MACHINES = (
 )
 
 
+#: The most machines --drawn draws.
+DRAWN_MAX = 20
+
+
+def drawn_machines(n: int, seed: int = 0) -> tuple[Machine, ...]:
+    """``n`` machines drawn from the acceptance class (seeded), none of them
+    looked at while the path was designed: a second-order spool of 80-150 Hz
+    (zeta 0.5-0.9), no delay or one sample, Coulomb 0-250 N and Stribeck
+    0-300 N friction, quantised sensors or not, velocity from position or not;
+    Table 1 off as every machine's (its own seed)."""
+    rng = np.random.default_rng(7000 + seed)
+    out = []
+    for k in range(1, n + 1):
+        f, z = float(rng.uniform(80.0, 150.0)), float(rng.uniform(0.5, 0.9))
+        delay, fc, fs = int(rng.integers(0, 2)), float(rng.uniform(0.0, 250.0)), float(rng.uniform(0.0, 300.0))
+        quantised, derived = bool(rng.integers(0, 2)), bool(rng.integers(0, 2))
+        text = (f"a {f:.0f} Hz spool (zeta {z:.2f}), {delay} sample(s) of delay, Coulomb {fc:.0f} N, "
+                f"Stribeck {fs:.0f} N{', quantised sensors' if quantised else ''}"
+                f"{', velocity from position' if derived else ''}")
+        plant = {"valve_frequency": f, "valve_damping_ratio": z, "delay": delay,
+                 "friction_coulomb": fc, "friction_stribeck": fs}
+        sensors = {**(_QUANTISED if quantised else {}), **(_DERIVED if derived else {})}
+        out.append(Machine(f"drawn-{k}", text, plant, sensors, 100 + 10 * seed + k))
+    return tuple(out)
+
+
 def recording(machine: Machine, experiment: str, seed: int) -> Experiment:
     """The machine's run of the shipped experiment ``experiment`` (the manual
     gains on the model), as its sensors read it, beside what the user knows."""
@@ -140,18 +173,26 @@ def at_stop_share(gains, cfg: Config) -> float:
     return float(np.mean(np.abs(u) >= AT_STOP * limit))
 
 
-def study(machine: Machine, evaluations: int, robust: bool, seed: int = 1) -> dict:
-    """The documented path on ``machine``; see the module."""
+def study(machine: Machine, evaluations: int, robust: bool, seed: int = 1, requirements=REQUIREMENTS,
+          reuse: dict | None = None) -> dict:
+    """The documented path on ``machine``; see the module. ``reuse``: an
+    earlier study's row of this machine whose ``best`` and ``path`` gains are
+    taken as they are (the same budget and code give the same bits)."""
     t0 = time.perf_counter()
     tuning = load_tuning().replace(seed=seed, evaluations=evaluations)
     exps = [recording(machine, name, s) for name, s in EXPERIMENTS]
     model, sel = identified_model(machine, exps)
     t_identify = time.perf_counter() - t0
     on_machine = machine.actual(model)
-    best = tune(on_machine, tuning, diagnostics=False)
-    candidates = {"manual": MANUAL_GAINS.as_tuple(), "best": best.gains}
+    kept = reuse["rows"] if reuse is not None else {}
+    best = tuple(kept["best"]["gains"]) if kept else tune(on_machine, tuning, diagnostics=False).gains
+    candidates = {"manual": MANUAL_GAINS.as_tuple(), "best": best}
     predicted, vouch = {}, {}
-    settings = {"path": tuning, "req": tuning.replace(requirements=load_requirements(REQUIREMENTS))}
+    settings = {"path": tuning, "req": tuning.replace(requirements=load_requirements(requirements))}
+    if kept:
+        candidates["path"], predicted["path"], vouch["path"] = (
+            tuple(kept["path"]["gains"]), kept["path"]["predicted"], kept["path"]["vouch"])
+        del settings["path"]
     if robust:
         settings["robust"] = robust_tuning(tuning, model, str(CONFIG_DIR / "scenarios_machine.yaml"), "cvar:0.2")
     for label, t in settings.items():
@@ -191,22 +232,63 @@ def print_row(r: dict) -> None:
     print(f"  ({r['seconds']['total']:.0f} s)", flush=True)
 
 
+def _shown_path(path: str) -> str:
+    """``path`` relative to the repository when it lies in it (the JSON names no machine's folders)."""
+    p = Path(path).resolve()
+    root = CONFIG_DIR.parent.resolve()
+    return str(p.relative_to(root)) if p.is_relative_to(root) else str(path)
+
+
+def reused_rows(path: str, evaluations: int) -> dict:
+    """An earlier study's rows by machine, for ``--reuse``; ValueError (one
+    line naming the file) when it cannot be read or had another budget."""
+    try:
+        with open(path) as f:
+            earlier = json.load(f)
+        budget, rows = earlier["evaluations"], {r["machine"]: r for r in earlier["rows"]}
+        for name, r in rows.items():
+            for label, keys in (("best", {"gains"}), ("path", {"gains", "predicted", "vouch"})):
+                if not keys <= set(r["rows"][label]):
+                    raise KeyError(f"{name}: rows.{label}")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"--reuse {path}: not a study's JSON ({type(exc).__name__}: {exc})") from None
+    if budget != evaluations:
+        raise ValueError(f"--reuse {path}: its budget is {budget} evaluations, not {evaluations}")
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m has_control.bench.machines", description=__doc__.splitlines()[0])
-    ap.add_argument("--machines", nargs="+", choices=[m.name for m in MACHINES], default=None)
+    drawn = drawn_machines(DRAWN_MAX)
+    ap.add_argument("--machines", nargs="+", choices=[m.name for m in MACHINES + drawn], default=None, metavar="NAME",
+                    help="the machines to study (default the six, or --drawn's)")
+    ap.add_argument("--drawn", type=int, default=0, metavar="N", choices=range(DRAWN_MAX + 1),
+                    help=f"study drawn-1 ... drawn-N instead of the six: machines drawn (seeded) from the "
+                         f"acceptance class (N <= {DRAWN_MAX})")
     ap.add_argument("--evaluations", type=int, default=2000, help="each tuning's budget (default 2000)")
     ap.add_argument("--robust", action="store_true",
                     help="also tune robustly (config/scenarios_machine.yaml, cvar:0.2) around the identified plant")
+    ap.add_argument("--requirements", default=str(REQUIREMENTS),
+                    help="the requirements file of the documented path (default config/requirements_machine.yaml)")
+    ap.add_argument("--reuse", default=None, metavar="JSON",
+                    help="take each machine's best and paper's-J gains from an earlier study's JSON (same budget)")
     ap.add_argument("--json", default=None, help="write the rows to this file")
     args = ap.parse_args(argv)
+    try:
+        reuse = reused_rows(args.reuse, args.evaluations) if args.reuse else {}
+    except ValueError as exc:
+        print(f"{ap.prog}: {exc}", file=sys.stderr)
+        return 2
     rows = []
-    for m in MACHINES:
-        if args.machines is None or m.name in args.machines:
-            rows.append(study(m, args.evaluations, args.robust))
+    chosen = args.machines or [m.name for m in (drawn[:args.drawn] if args.drawn else MACHINES)]
+    for m in MACHINES + drawn:
+        if m.name in chosen:
+            rows.append(study(m, args.evaluations, args.robust, requirements=args.requirements,
+                              reuse=reuse.get(m.name)))
             print_row(rows[-1])
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"evaluations": args.evaluations, "rows": rows}, f, indent=1)
+            json.dump({"evaluations": args.evaluations, "requirements": _shown_path(args.requirements), "rows": rows}, f, indent=1)
     return 0
 
 

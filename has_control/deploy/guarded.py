@@ -85,10 +85,15 @@ class DeploymentPlan:
             raise ValueError(f"margin = {self.margin!r}: must be in [0, 1)")
 
     def schedule(self) -> np.ndarray:
-        """(steps + 1, 3): the safe gains, then each step's."""
+        """(steps + 1, 3): the safe gains, then each step's (geometric), the
+        first and last rows the safe and tuned gains exactly as given (exp of
+        log is not: 150 came back as 149.99999999999997, and a fallback is to
+        the user's own numbers)."""
         safe, tuned = np.log(self.safe), np.log(self.tuned)
         f = np.arange(self.steps + 1)[:, None] / self.steps
-        return np.exp(safe * (1.0 - f) + tuned * f)
+        rows = np.exp(safe * (1.0 - f) + tuned * f)
+        rows[0], rows[-1] = self.safe, self.tuned
+        return rows
 
     def switches(self, dt: float) -> np.ndarray:
         """The sample at which each row of :meth:`schedule` takes effect."""

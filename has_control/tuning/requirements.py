@@ -84,11 +84,16 @@ class Requirements:
         """The requirements that are on, by name: their limits."""
         return {k: float(getattr(self, k)) for k in REQUIREMENTS if getattr(self, k) > 0.0}
 
+    def tracking(self, runs: np.ndarray) -> np.ndarray:
+        """J_w of each run (J over the metric window, or over the whole run):
+        the requirements' J before any penalty, as the vouch compares it."""
+        return runs[..., _COLUMNS.index("J_window" if self.window else "J")]
+
     def cost(self, runs: np.ndarray) -> np.ndarray:
         """J_req of each run: ``runs`` (..., 4 + len(MEASURES)) as
         :func:`~has_control.core.episode.evaluate_measured` gives them."""
         col = {c: runs[..., i] for i, c in enumerate(_COLUMNS)}
-        base = col["J_window"] if self.window else col["J"]
+        base = self.tracking(runs)
         violation = np.zeros_like(base)
         for name, limit in self.limits().items():
             measure, side, _, _ = REQUIREMENTS[name]

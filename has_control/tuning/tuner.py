@@ -288,14 +288,15 @@ def answer_run(cfg: Config, tuning: Tuning, gains) -> dict | None:
     rows = evaluate_measured(np.array([gains]), [cfg] + [v.cfg for v in variants],
                              **({"corner": req.hf_frequency} if req else {}))[0]
     row = rows[0]
+    tracked = req.tracking(rows) if req is not None else rows[:, 0]     # the J the vouch compares
     out = {"valve_limit": float(cfg.plant.valve_limit), "measures": dict(zip(MEASURES, map(float, row[4:])))}
     if req is not None:
         out["requirements"] = req.report(row)
         out["J_requirements"] = float(req.cost(row[None, :])[0])
     if variants or inadequate:
         out["vouch"] = {"band_hz": float(cfg.plant.validated_band),
-                        **vouch_report([v.name for v in variants], [v.text for v in variants], float(row[0]),
-                                       rows[1:, 0], capped=any(v.capped for v in variants),
+                        **vouch_report([v.name for v in variants], [v.text for v in variants], float(tracked[0]),
+                                       tracked[1:], capped=any(v.capped for v in variants),
                                        inadequate=inadequate)}
     return out
 
@@ -315,25 +316,28 @@ def make_objective(cfg: Config, tuning: Tuning,
         raise ConfigError("requirements: scored by the in-process evaluator only (not --dask or the graph)")
     variants = [v.cfg for v in unseen_variants(cfg)] if batch is None and not tuning.scenarios else []
     if req is not None:
-        def cost(k, cfgs):
-            return req.cost(evaluate_measured(k, cfgs, corner=req.hf_frequency))
+        def costs(k, cfgs):
+            """(the cost on each of ``cfgs``, the J the vouch compares: without the penalties)."""
+            runs = evaluate_measured(k, cfgs, corner=req.hf_frequency)
+            return req.cost(runs), req.tracking(runs)
     else:
         run = batch or evaluate_configs
 
-        def cost(k, cfgs):
-            return run(k, cfgs)[:, :, 0]
+        def costs(k, cfgs):
+            c = run(k, cfgs)[:, :, 0]
+            return c, c
     if tuning.scenarios:
         configs = scenario_configs(cfg, tuning.scenarios)
 
         def objective(k):
-            return tuning.aggregate(cost(k, configs))
+            return tuning.aggregate(costs(k, configs)[0])
     elif variants:
         def objective(k):
-            c = cost(k, [cfg] + variants)
-            return vouched_cost(c[:, 0], c[:, 1:])
+            c, tracked = costs(k, [cfg] + variants)
+            return vouched_cost(c[:, 0], tracked[:, 1:])
     else:
         def objective(k):
-            return cost(k, [cfg])[:, 0]
+            return costs(k, [cfg])[0][:, 0]
     return objective
 
 
