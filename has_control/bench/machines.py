@@ -287,8 +287,9 @@ def main(argv=None) -> int:
                               reuse=reuse.get(m.name)))
             print_row(rows[-1])
     if args.json:
+        study_json = {"evaluations": args.evaluations, "requirements": _shown_path(args.requirements), "rows": rows}
         with open(args.json, "w") as f:
-            json.dump({"evaluations": args.evaluations, "requirements": _shown_path(args.requirements), "rows": rows}, f, indent=1)
+            json.dump(study_json, f, indent=1)
     return 0
 
 
