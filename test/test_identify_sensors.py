@@ -32,7 +32,7 @@ def test_the_true_states_read_through_the_declared_sensors_are_the_readings():
     np.testing.assert_allclose(read[:, :, 1], exp.x[s[:, None] + np.arange(97), 1], rtol=1e-9, atol=1e-12)
     np.testing.assert_array_equal(read[:, :, [0, 2, 3]], pred[:, :, [0, 2, 3]])
     # the reading lags: at the start of a fast segment the slope is nearer the true velocity than the reading
-    x0 = initial_states(exp, s, exp.x[s[:, None] + np.arange(97)])
+    x0 = initial_states(exp, s)
     assert np.all(np.abs(x0[:, 1] - truth[s, 1]) < np.abs(exp.x[s, 1] - truth[s, 1]))
 
 

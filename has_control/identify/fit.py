@@ -144,7 +144,8 @@ def as_read(pred: np.ndarray, exp: Experiment, s: np.ndarray) -> np.ndarray:
     the predicted position, from the velocity reading at the segment's start.
     Compared with the true velocity instead, a filter's lag reads as model
     error: on a machine with 210 N of Coulomb friction the friction structure
-    found the truth yet lost on BIC (docs/findings.md). Else ``pred`` as it is."""
+    found the truth yet lost on BIC (docs/findings.md). Else ``pred`` as it is.
+    The velocity channel is rewritten in place; ``pred`` is returned."""
     noise = exp.cfg.noise
     if noise.velocity_source != "derived":
         return pred
@@ -163,14 +164,14 @@ def as_read(pred: np.ndarray, exp: Experiment, s: np.ndarray) -> np.ndarray:
 SLOPE_HALF_WIDTH = 5
 
 
-def initial_states(exp: Experiment, s: np.ndarray, meas: np.ndarray) -> np.ndarray:
+def initial_states(exp: Experiment, s: np.ndarray) -> np.ndarray:
     """Where each segment's initial state starts (the Gauss-Newton step of the
     variable projection moves it from there): the readings at the segment's
     start, except a derived velocity, which lags the true one by its filter;
     then the slope of the least-squares line through the position readings
     SLOPE_HALF_WIDTH samples each side (centred: no lag; over 11 samples the
     quantisation's steps average out)."""
-    x0 = np.ascontiguousarray(meas[:, 0, :])
+    x0 = np.ascontiguousarray(exp.x[s])
     if exp.cfg.noise.velocity_source == "derived":
         h = SLOPE_HALF_WIDTH
         i = np.clip(s[:, None] + np.arange(-h, h + 1), 0, len(exp.x) - 1)
@@ -193,7 +194,7 @@ class _Problem:
                       for e in exps]
         rows = np.arange(length + 1)
         self.meas = [e.x[s[:, None] + rows] for e, s in zip(exps, self.starts)]     # (segments, L + 1, 4)
-        self.x0 = [initial_states(e, s, m) for e, s, m in zip(exps, self.starts, self.meas)]
+        self.x0 = [initial_states(e, s) for e, s in zip(exps, self.starts)]
         self.weights = np.ones(4)
         self.evaluations = 0
         self._sens_at: dict = {}
